@@ -1,0 +1,59 @@
+"""The one place that initialises Taichi.
+
+Nothing in bftaichi or kernels calls ``ti.init`` at import time. Library users call
+:func:`bftaichi.init` (or let :class:`~bftaichi.fusion.TSDFVolume` call it with the defaults);
+embedders that already called ``ti.init`` themselves keep their runtime: :func:`init` only
+initialises when Taichi is not running yet, or when a different arch is asked for explicitly.
+
+Compiled kernels are kept in Taichi's offline cache (``~/.cache/taichi`` unless
+``TI_OFFLINE_CACHE_FILE_PATH`` is set), so the second run of a command does not recompile.
+"""
+
+from __future__ import annotations
+
+import os
+
+from .errors import BftaichiError
+
+__all__ = ["init", "is_initialized", "current_arch"]
+
+_ARCHES = ("cpu", "cuda", "vulkan", "metal", "gpu")
+_state: dict[str, str | None] = {"arch": None}
+
+
+def init(arch: str = "cpu", *, debug: bool = False, offline_cache: bool = True,
+         num_threads: int | None = None) -> None:
+    """Initialise the Taichi runtime once.
+
+    Args:
+        arch: ``cpu`` (default), ``cuda``, ``vulkan``, ``metal`` or ``gpu`` (any available GPU).
+        debug: Taichi debug mode (bounds checks; slow).
+        offline_cache: keep compiled kernels on disk across runs (recommended).
+        num_threads: CPU threads (default: all cores).
+
+    Calling it again with the same arch is a no-op. A different arch resets Taichi, which
+    invalidates every field allocated before: do it before creating volumes.
+    """
+    if arch not in _ARCHES:
+        raise BftaichiError(f"unknown arch {arch!r}; choose one of {', '.join(_ARCHES)}")
+    if _state["arch"] == arch:
+        return
+    # No network at run time: Taichi otherwise phones home for a version check.
+    os.environ["TI_SKIP_VERSION_CHECK"] = "ON"
+    import taichi as ti
+
+    kwargs = dict(arch=getattr(ti, arch), offline_cache=offline_cache, debug=debug,
+                  default_fp=ti.f32, default_ip=ti.i32, random_seed=0, log_level=ti.WARN)
+    if num_threads is not None:
+        kwargs["cpu_max_num_threads"] = int(num_threads)
+    ti.init(**kwargs)
+    _state["arch"] = arch
+
+
+def is_initialized() -> bool:
+    """True once :func:`init` ran in this process."""
+    return _state["arch"] is not None
+
+
+def current_arch() -> str | None:
+    return _state["arch"]

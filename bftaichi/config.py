@@ -1,0 +1,475 @@
+"""Run configuration: typed dataclasses, one per TOML section of a scene file.
+
+A run is a scene file plus overrides. Precedence (highest first):
+
+1. ``--set section.key=value`` on the command line (value parsed as a TOML value; a bare word is a
+   string, so ``--set synthetic.mesh=sphere`` works without quotes);
+2. the scene file (``scenes/*.toml``);
+3. the defaults below. The defaults *are* the built-in default scene (a tabletop seen by a
+   Kinect-like camera), so ``bftaichi run`` with no scene file needs nothing from disk.
+
+Unknown sections or keys, wrong types and out-of-range values raise :class:`ConfigError` naming
+the key. Relative paths in a scene file are resolved against the scene file's folder; ``$VARS``
+and ``~`` are expanded. The resolved configuration is saved as ``config.toml`` next to the outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .errors import ConfigError
+
+__all__ = [
+    "Config",
+    "SceneConfig",
+    "SyntheticConfig",
+    "TSDFConfig",
+    "MeshConfig",
+    "EvalConfig",
+    "RunConfig",
+    "load_config",
+]
+
+
+def _check_range(key: str, value: float, lo: float | None = None, hi: float | None = None,
+                 lo_open: bool = False) -> None:
+    """Raise ConfigError unless lo <= value <= hi (lo < value with ``lo_open``); names ``key``."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"{key} = {value} is not a finite number")
+    if lo is not None and (value <= lo if lo_open else value < lo):
+        rel = ">" if lo_open else ">="
+        raise ConfigError(f"{key} = {value} is out of range: must be {rel} {lo}")
+    if hi is not None and value > hi:
+        raise ConfigError(f"{key} = {value} is out of range: must be <= {hi}")
+
+
+def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ConfigError(f"{key} = {value!r} is not one of {', '.join(choices)}")
+
+
+@dataclass
+class SceneConfig:
+    """``[scene]``: where the frames come from."""
+
+    name: str = "default"
+    """Scene name, used for the default output folder ``out/<name>`` and in reports."""
+
+    source: str = "synthetic"
+    """``synthetic`` (render frames from a mesh, section ``[synthetic]``, with ground truth) or
+    ``dataset`` (read recorded frames from ``data``)."""
+
+    data: str = ""
+    """Dataset folder for ``source = "dataset"``; relative paths are relative to the scene file."""
+
+    format: str = "auto"
+    """Dataset layout: ``auto`` (detect), ``7scenes`` or ``bfsdf`` (DESIGN.md section 5)."""
+
+    frames: str = ""
+    """Python-style slice of the frames to use, e.g. ``"0:100:2"``; empty = all frames."""
+
+    gt_mesh: str = ""
+    """Optional ground-truth mesh for metrics on a dataset (``synth`` writes ``gt_mesh.ply``;
+    ``auto`` finds that file in the dataset folder). Synthetic scenes always have one."""
+
+    depth_min_m: float = 0.1
+    """Depth below this (metres) is invalid and dropped per pixel (sensor near limit)."""
+
+    depth_max_m: float = 6.0
+    """Depth above this (metres) is invalid and dropped per pixel. 6 m keeps Kinect-class sensors'
+    far, noisy returns out of the map."""
+
+    def check(self) -> None:
+        _check_choice("scene.source", self.source, ("synthetic", "dataset"))
+        _check_choice("scene.format", self.format, ("auto", "7scenes", "bfsdf"))
+        _check_range("scene.depth_min_m", self.depth_min_m, 0.0)
+        _check_range("scene.depth_max_m", self.depth_max_m, self.depth_min_m, lo_open=True)
+        if self.source == "dataset" and not self.data:
+            raise ConfigError("scene.data is empty but scene.source = 'dataset': give the dataset folder")
+        if self.frames:
+            parse_slice(self.frames, "scene.frames")
+
+
+@dataclass
+class SyntheticConfig:
+    """``[synthetic]``: a scene rendered from a mesh, with ground truth."""
+
+    mesh: str = "tabletop"
+    """Built-in primitive (``sphere``, ``box``, ``cylinder``, ``torus``, ``tabletop``) or a mesh
+    file path (OBJ/PLY/STL/OFF/GLB, anything trimesh reads)."""
+
+    mesh_up: str = "z"
+    """Which axis of the mesh file points up; ``y`` rotates a y-up mesh (e.g. the Stanford bunny)
+    so that +y becomes +z. The world is z-up."""
+
+    mesh_scale: float = 1.0
+    """Uniform scale applied to the mesh (after ``mesh_up``)."""
+
+    center_mesh: bool = False
+    """Translate a mesh file so its bounding-box centre is at the origin (primitives are already
+    placed around the origin)."""
+
+    radius_m: float = 0.3
+    """Size of ``sphere``/``cylinder`` primitives (radius) and ``torus`` major radius, metres;
+    ``box`` has half-extent ``radius_m`` (the tabletop has fixed, documented dimensions)."""
+
+    trajectory: str = "ring"
+    """Camera path: ``ring`` (the paper's: a horizontal circle at ``cam_height_m``), ``sphere`` or
+    ``hemisphere`` (Fibonacci points), ``spiral`` (rising from ``cam_height_m`` to
+    ``cam_height_end_m`` over ``turns``)."""
+
+    n_views: int = 24
+    """Number of camera poses."""
+
+    cam_radius_m: float = 1.2
+    """Distance of the cameras from the look-at point (ring/spiral: horizontal radius)."""
+
+    cam_height_m: float = 0.7
+    """Camera height above the look-at point for ``ring`` and start of ``spiral``, metres."""
+
+    cam_height_end_m: float = 1.0
+    """Final camera height of ``spiral``, metres."""
+
+    turns: float = 2.0
+    """Number of revolutions of ``spiral``."""
+
+    min_elevation_deg: float = 10.0
+    """Lowest elevation of ``hemisphere`` views (0 = horizon); keeps cameras above a table."""
+
+    look_at: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    """World point every camera looks at (z-up world)."""
+
+    width: int = 320
+    """Image width, pixels."""
+
+    height: int = 240
+    """Image height, pixels."""
+
+    fx: float = 262.5
+    """Focal length x, pixels (Kinect v1 at 320x240)."""
+
+    fy: float = 262.5
+    """Focal length y, pixels."""
+
+    cx: float = 159.5
+    """Principal point x, pixels (OpenCV convention: pixel centres at integers)."""
+
+    cy: float = 119.5
+    """Principal point y, pixels."""
+
+    noise: str = "kinect"
+    """Depth noise model: ``none``, ``gaussian`` (``sigma_m``), or ``kinect`` (axial
+    ``sigma_z(z) = kinect_a + kinect_b * (z - kinect_z0)^2``)."""
+
+    sigma_m: float = 0.002
+    """Standard deviation of the ``gaussian`` model, metres."""
+
+    kinect_a: float = 0.0012
+    """Kinect axial noise constant term, metres (Nguyen et al. 2012)."""
+
+    kinect_b: float = 0.0019
+    """Kinect axial noise quadratic term, 1/metre."""
+
+    kinect_z0: float = 0.4
+    """Kinect axial noise reference depth, metres."""
+
+    quantization_m: float = 0.001
+    """Depth quantisation step, metres (0 = none). 0.001 mimics depth stored in millimetres."""
+
+    dropout: float = 0.0
+    """Fraction of valid pixels dropped at random (set to invalid)."""
+
+    seed: int = 0
+    """Seed of the noise and dropout; frame ``i`` uses ``seed + i`` so frames are independent."""
+
+    def check(self) -> None:
+        _check_choice("synthetic.mesh_up", self.mesh_up, ("z", "y"))
+        _check_range("synthetic.mesh_scale", self.mesh_scale, 0.0, lo_open=True)
+        _check_range("synthetic.radius_m", self.radius_m, 0.0, lo_open=True)
+        _check_choice("synthetic.trajectory", self.trajectory, ("ring", "sphere", "hemisphere", "spiral"))
+        _check_range("synthetic.n_views", self.n_views, 1, 100000)
+        _check_range("synthetic.cam_radius_m", self.cam_radius_m, 0.0, lo_open=True)
+        _check_range("synthetic.turns", self.turns, 0.0)
+        _check_range("synthetic.min_elevation_deg", self.min_elevation_deg, -90.0, 89.0)
+        if len(self.look_at) != 3:
+            raise ConfigError(f"synthetic.look_at must have 3 numbers, got {self.look_at!r}")
+        _check_range("synthetic.width", self.width, 2, 16384)
+        _check_range("synthetic.height", self.height, 2, 16384)
+        for key in ("fx", "fy"):
+            _check_range(f"synthetic.{key}", getattr(self, key), 0.0, lo_open=True)
+        _check_choice("synthetic.noise", self.noise, ("none", "gaussian", "kinect"))
+        _check_range("synthetic.sigma_m", self.sigma_m, 0.0)
+        _check_range("synthetic.kinect_a", self.kinect_a, 0.0)
+        _check_range("synthetic.kinect_b", self.kinect_b, 0.0)
+        _check_range("synthetic.quantization_m", self.quantization_m, 0.0, 1.0)
+        _check_range("synthetic.dropout", self.dropout, 0.0, 0.99)
+
+
+@dataclass
+class TSDFConfig:
+    """``[tsdf]``: the projective TSDF bootstrap (DESIGN.md section 3, step 1)."""
+
+    voxel_size_m: float = 0.01
+    """Voxel edge length, metres. Voxel ``ijk`` has centre ``(ijk + 0.5) * voxel_size_m``."""
+
+    trunc_m: float = 0.03
+    """Observation truncation ``tau``, metres (samples within ``+-tau`` of the measured surface).
+    Must be at least one voxel; 3 voxels is a common choice for Kinect-class noise."""
+
+    alpha: float = 2.0
+    """The bootstrap TSDF runs with truncation ``tau_b = alpha * trunc_m`` so that the narrow band
+    ``|sdf| < alpha * tau`` exists in it (paper: alpha in [1, 3])."""
+
+    max_weight: float = 10000.0
+    """Cap of the per-voxel running weight (each observation adds 1). The default is voxblox's and
+    is effectively no cap; a small cap (e.g. 50) makes the TSDF forget old frames."""
+
+    integrate_rgb: bool = False
+    """Also fuse RGB into per-voxel colour (off by default: it costs time and memory)."""
+
+    def check(self) -> None:
+        _check_range("tsdf.voxel_size_m", self.voxel_size_m, 1e-4, 1.0)
+        if self.trunc_m < self.voxel_size_m:
+            raise ConfigError(
+                f"tsdf.trunc_m = {self.trunc_m} is smaller than one voxel "
+                f"(tsdf.voxel_size_m = {self.voxel_size_m}); use at least one voxel, typically 3-4")
+        _check_range("tsdf.trunc_m", self.trunc_m, 0.0, 10.0, lo_open=True)
+        _check_range("tsdf.alpha", self.alpha, 1.0, 3.0)
+        _check_range("tsdf.max_weight", self.max_weight, 1.0)
+
+    @property
+    def bootstrap_trunc_m(self) -> float:
+        """Truncation of the bootstrap TSDF, ``tau_b = alpha * tau``, metres."""
+        return self.alpha * self.trunc_m
+
+
+@dataclass
+class MeshConfig:
+    """``[mesh]``: marching cubes over the TSDF."""
+
+    min_weight: float = 1.0
+    """A cell produces triangles only if all 8 corner voxels have weight >= this. 1 = seen at least
+    once; raise it (Open3D uses 3, "seen from 3 viewpoints") to drop surfaces seen by few frames."""
+
+    def check(self) -> None:
+        _check_range("mesh.min_weight", self.min_weight, 0.0, lo_open=True)
+
+
+@dataclass
+class EvalConfig:
+    """``[eval]``: geometry metrics against a ground-truth mesh (DESIGN.md section 6)."""
+
+    thresholds_mm: list[float] = field(default_factory=lambda: [5.0, 10.0, 20.0, 50.0])
+    """Distance thresholds of precision / recall / F-score, millimetres."""
+
+    n_samples: int = 200000
+    """Points sampled (area-weighted) on each surface; more = finer, slower."""
+
+    seed: int = 0
+    """Seed of the surface sampling, so metrics are reproducible."""
+
+    def check(self) -> None:
+        if not self.thresholds_mm:
+            raise ConfigError("eval.thresholds_mm is empty")
+        for t in self.thresholds_mm:
+            _check_range("eval.thresholds_mm", float(t), 0.0, lo_open=True)
+        _check_range("eval.n_samples", self.n_samples, 100, 50_000_000)
+
+
+@dataclass
+class RunConfig:
+    """``[run]``: how the run executes."""
+
+    arch: str = "cpu"
+    """Taichi backend: ``cpu`` (default; the product is CPU-first), ``cuda``, ``vulkan``, ``metal``."""
+
+    seed: int = 0
+    """Master seed of the run's random choices (synthetic noise has its own ``synthetic.seed``)."""
+
+    def check(self) -> None:
+        _check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
+
+
+@dataclass
+class Config:
+    """The whole configuration of a run; one attribute per TOML section."""
+
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    tsdf: TSDFConfig = field(default_factory=TSDFConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+    def check(self) -> "Config":
+        """Validate every section; raise ConfigError naming the first bad key."""
+        for f in dataclasses.fields(self):
+            getattr(self, f.name).check()
+        return self
+
+    @classmethod
+    def from_toml(cls, path: str | os.PathLike, overrides: typing.Sequence[str] = ()) -> "Config":
+        """Load a scene file, apply ``section.key=value`` overrides, resolve paths, validate."""
+        return load_config(path, overrides)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _field_types(obj) -> dict[str, typing.Any]:
+    return typing.get_type_hints(type(obj))
+
+
+def _coerce(key: str, value, typ):
+    """Convert a TOML value to the field type, or raise ConfigError naming ``key``."""
+    origin = typing.get_origin(typ)
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+    elif typ is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif typ is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif typ is str:
+        if isinstance(value, str):
+            return value
+    elif origin is list:
+        (item,) = typing.get_args(typ)
+        if isinstance(value, list):
+            return [_coerce(key, v, item) for v in value]
+    else:  # pragma: no cover - all fields use the types above
+        raise ConfigError(f"{key}: unsupported field type {typ}")
+    tname = getattr(typ, "__name__", str(typ))
+    raise ConfigError(f"{key} = {value!r} has the wrong type: expected {tname}")
+
+
+def _unknown(kind: str, name: str, known: typing.Iterable[str]) -> ConfigError:
+    known = sorted(known)
+    close = difflib.get_close_matches(name, known, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return ConfigError(f"unknown {kind} {name!r}{hint}; known: {', '.join(known)}")
+
+
+def _set(cfg: Config, section: str, key: str, value) -> None:
+    sections = {f.name for f in dataclasses.fields(cfg)}
+    if section not in sections:
+        raise _unknown("section", section, sections)
+    sub = getattr(cfg, section)
+    types = _field_types(sub)
+    if key not in types:
+        raise _unknown(f"key in [{section}]", key, types)
+    setattr(sub, key, _coerce(f"{section}.{key}", value, types[key]))
+
+
+def apply_dict(cfg: Config, data: dict, origin: str = "") -> Config:
+    """Apply a nested ``{section: {key: value}}`` mapping (a parsed scene file) to ``cfg``."""
+    where = f" in {origin}" if origin else ""
+    for section, table in data.items():
+        if not isinstance(table, dict):
+            raise ConfigError(f"top-level key {section!r}{where} must be a [section] table")
+        for key, value in table.items():
+            try:
+                _set(cfg, section, key, value)
+            except ConfigError as e:
+                raise ConfigError(f"{e}{where}") from None
+    return cfg
+
+
+def parse_override(text: str) -> tuple[str, str, typing.Any]:
+    """Parse ``section.key=value``; the value is TOML (``0.01``, ``true``, ``[5, 10]``, ``"s"``),
+    and a bare word that is not valid TOML is taken as a string."""
+    if "=" not in text:
+        raise ConfigError(f"--set {text!r}: expected section.key=value")
+    lhs, rhs = text.split("=", 1)
+    lhs = lhs.strip()
+    if lhs.count(".") != 1:
+        raise ConfigError(f"--set {text!r}: the key must be section.key, e.g. tsdf.voxel_size_m")
+    section, key = lhs.split(".")
+    try:
+        value = tomllib.loads(f"v = {rhs.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = rhs.strip()
+    return section, key, value
+
+
+def _resolve_path(p: str, base: Path) -> str:
+    if not p or p in ("auto",):
+        return p
+    expanded = os.path.expanduser(os.path.expandvars(p))
+    path = Path(expanded)
+    if not path.is_absolute():
+        path = base / path
+    return str(path.resolve()) if path.exists() else str(path)
+
+
+def resolve_paths(cfg: Config, base: Path) -> Config:
+    """Make data / mesh paths absolute against ``base`` (the scene file's folder)."""
+    cfg.scene.data = _resolve_path(cfg.scene.data, base)
+    cfg.scene.gt_mesh = _resolve_path(cfg.scene.gt_mesh, base)
+    from .synthetic import PRIMITIVES  # local import: synthetic imports config types
+
+    if cfg.synthetic.mesh not in PRIMITIVES:
+        cfg.synthetic.mesh = _resolve_path(cfg.synthetic.mesh, base)
+    return cfg
+
+
+def load_config(path: str | os.PathLike | None = None, overrides: typing.Sequence[str] = ()) -> Config:
+    """Defaults, then the scene file ``path`` (if any), then ``overrides``; validated.
+
+    Raises ConfigError for a missing or malformed scene file, unknown keys and bad values.
+    """
+    cfg = Config()
+    base = Path.cwd()
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"scene file {path} does not exist")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"scene file {path} is not valid TOML: {e}") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise ConfigError(f"scene file {path} cannot be read: {e}") from None
+        apply_dict(cfg, data, origin=str(path))
+        resolve_paths(cfg, path.resolve().parent)
+    for text in overrides:
+        section, key, value = parse_override(text)
+        _set(cfg, section, key, value)
+    resolve_paths(cfg, Path.cwd())
+    return cfg.check()
+
+
+def parse_slice(text: str, key: str = "frames") -> slice:
+    """``"a:b:c"`` -> ``slice(a, b, c)``; a single integer ``"n"`` means the first n frames."""
+    try:
+        parts = [int(p) if p.strip() else None for p in text.split(":")]
+    except ValueError:
+        raise ConfigError(f"{key} = {text!r} is not a slice like '0:100:2'") from None
+    if len(parts) == 1:
+        return slice(0, parts[0])
+    if len(parts) > 3:
+        raise ConfigError(f"{key} = {text!r} is not a slice like '0:100:2'")
+    s = slice(*parts)
+    if s.step is not None and s.step <= 0:
+        raise ConfigError(f"{key} = {text!r}: the step must be positive")
+    return s
+
+
+def save_config(cfg: Config, path: str | os.PathLike) -> None:
+    """Write the resolved configuration as TOML (atomically)."""
+    import tomli_w
+
+    from .io import atomic_write_bytes
+
+    atomic_write_bytes(path, tomli_w.dumps(cfg.to_dict()).encode())

@@ -1,0 +1,132 @@
+"""Output files: atomic writes and the PLY / NPZ / JSON formats of DESIGN.md section 4.
+
+Every file is written to a temporary file in the destination folder and then renamed over the
+target (``os.replace`` is atomic on POSIX), so an interrupted run never leaves a half-written file.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import BftaichiError
+
+__all__ = ["atomic_write_bytes", "write_json", "write_npz", "write_mesh_ply", "read_mesh_ply",
+           "prepare_out_dir"]
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temp file in the same folder + rename."""
+    path = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise BftaichiError(f"cannot write {path}: {e.strerror}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(e, OSError):
+            raise BftaichiError(f"cannot write {path}: {e.strerror or e}") from None
+        raise
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    """Pretty JSON (numpy scalars and arrays converted), written atomically."""
+
+    def default(o):
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, Path):
+            return str(o)
+        raise TypeError(f"not JSON serialisable: {type(o)}")
+
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, default=default) + "\n").encode())
+
+
+def write_npz(path: str | os.PathLike, **arrays) -> None:
+    """``np.savez_compressed`` into memory, then an atomic write."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def write_mesh_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
+                   vertex_attrs: dict[str, np.ndarray] | None = None,
+                   vertex_colors: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY: vertex ``x y z`` (float32) + extra float32 attributes
+    (e.g. ``sigma``) + optional ``red green blue`` (uint8), and ``vertex_indices`` faces (int32)."""
+    from plyfile import PlyData, PlyElement
+
+    vertices = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
+    faces = np.asarray(faces, dtype=np.int32).reshape(-1, 3)
+    vertex_attrs = vertex_attrs or {}
+    dtype = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    dtype += [(name, "f4") for name in vertex_attrs]
+    if vertex_colors is not None:
+        dtype += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vert = np.empty(len(vertices), dtype=dtype)
+    vert["x"], vert["y"], vert["z"] = vertices.T
+    for name, values in vertex_attrs.items():
+        vert[name] = np.asarray(values, dtype=np.float32).reshape(-1)
+    if vertex_colors is not None:
+        c = np.asarray(vertex_colors, dtype=np.uint8).reshape(-1, 3)
+        vert["red"], vert["green"], vert["blue"] = c.T
+    face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
+    face["vertex_indices"] = faces
+    ply = PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")],
+                  text=False, byte_order="<")
+    buf = io.BytesIO()
+    ply.write(buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def read_mesh_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Read a PLY written by :func:`write_mesh_ply`: (vertices, faces, extra vertex properties)."""
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path))
+    v = ply["vertex"].data
+    vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    extra = {n: np.asarray(v[n]) for n in v.dtype.names if n not in ("x", "y", "z")}
+    faces = np.zeros((0, 3), np.int32)
+    if "face" in ply and len(ply["face"].data):
+        faces = np.stack(ply["face"].data["vertex_indices"]).astype(np.int32)
+    return vertices, faces, extra
+
+
+RUN_MARKERS = ("report.json", "tsdf_mesh.ply", "mesh.ply", "band.npz")
+
+
+def prepare_out_dir(out: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Create ``out`` (and parents) and check it is writable. Refuse a folder that already holds a
+    run's outputs unless ``overwrite``. Raises BftaichiError naming the folder."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise BftaichiError(f"output folder {out} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BftaichiError(f"cannot create output folder {out}: {e.strerror or e}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise BftaichiError(f"output folder {out} is not writable")
+    existing = [m for m in RUN_MARKERS if (out / m).exists()]
+    if existing and not overwrite:
+        raise BftaichiError(
+            f"output folder {out} already holds a run ({', '.join(existing)}); "
+            "pass --overwrite to replace it or choose another --out")
+    return out
