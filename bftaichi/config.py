@@ -88,7 +88,9 @@ class SceneConfig:
 
     def check(self) -> None:
         _check_choice("scene.source", self.source, ("synthetic", "dataset"))
-        _check_choice("scene.format", self.format, ("auto", "7scenes", "bfsdf"))
+        from .datasets import FORMATS
+
+        _check_choice("scene.format", self.format, ("auto", *FORMATS))
         _check_range("scene.depth_min_m", self.depth_min_m, 0.0)
         _check_range("scene.depth_max_m", self.depth_max_m, self.depth_min_m, lo_open=True)
         if self.source == "dataset" and not self.data:
@@ -187,7 +189,8 @@ class SyntheticConfig:
     """Fraction of valid pixels dropped at random (set to invalid)."""
 
     seed: int = 0
-    """Seed of the noise and dropout; frame ``i`` uses ``seed + i`` so frames are independent."""
+    """Seed (>= 0) of the noise and dropout; frame ``i`` draws from ``default_rng([seed, i])``, so a
+    frame is the same whatever order frames are requested in."""
 
     def check(self) -> None:
         _check_choice("synthetic.mesh_up", self.mesh_up, ("z", "y"))
@@ -210,6 +213,7 @@ class SyntheticConfig:
         _check_range("synthetic.kinect_b", self.kinect_b, 0.0)
         _check_range("synthetic.quantization_m", self.quantization_m, 0.0, 1.0)
         _check_range("synthetic.dropout", self.dropout, 0.0, 0.99)
+        _check_range("synthetic.seed", self.seed, 0)
 
 
 @dataclass

@@ -34,7 +34,7 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
         raise ValueError("look_at: eye and target coincide")
     z /= norm
     for candidate in (up, np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0])):
-        x = np.cross(z, -candidate)  # x = y_down x z  with y_down ~ -up
+        x = np.cross(-candidate, z)  # x = y x z with y (image down) ~ -up
         if np.linalg.norm(x) > 1e-6:
             break
     x /= np.linalg.norm(x)

@@ -1,0 +1,145 @@
+"""The TSDF integrator: validated Python front of :class:`kernels.tsdf.SparseTSDF`.
+
+Usage::
+
+    import bftaichi as bf
+    vol = bf.TSDFVolume(voxel_size_m=0.01, trunc_m=0.04)
+    for frame in bf.open_dataset("path/to/7scenes-seq"):
+        vol.integrate(frame.depth_m, frame.K, frame.T_W_C, name=frame.name)
+    mesh = vol.extract_mesh()          # trimesh.Trimesh, world frame, metres
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import trimesh
+
+from . import backend
+from .errors import BftaichiError, NoSurfaceError
+from .geometry import check_depth, check_K, check_pose
+
+__all__ = ["TSDFVolume", "auto_activation_stride"]
+
+
+def auto_activation_stride(K: np.ndarray, voxel_size_m: float, depth_max_m: float) -> int:
+    """Pixel stride for block activation: the largest stride <= 4 (Open3D's fixed choice) whose
+    ray spacing at ``depth_max_m`` stays within half a block (8 voxels), so skipping pixels
+    cannot skip a block. 1 for small images / far depth."""
+    f = float(min(K[0, 0], K[1, 1]))
+    spacing_per_stride = depth_max_m / f  # metres between neighbouring pixel rays at depth_max
+    stride = int(math.floor(0.5 * 8 * voxel_size_m / spacing_per_stride))
+    return max(1, min(4, stride))
+
+
+class TSDFVolume:
+    """Sparse projective TSDF volume (DESIGN.md section 3, step 1).
+
+    Args:
+        voxel_size_m: voxel edge, metres (voxel ``ijk`` has centre ``(ijk + 0.5) * voxel_size_m``).
+        trunc_m: truncation of the TSDF, metres (at least one voxel).
+        max_weight: running-weight cap; each observation adds 1.
+        integrate_rgb: also average per-voxel colour from ``rgb`` images.
+        depth_max_m: depth beyond this is ignored (also sets the activation stride).
+        arch: Taichi backend used if Taichi is not initialised yet.
+
+    Integration is deterministic: the same frames give bitwise the same volume.
+    """
+
+    def __init__(self, voxel_size_m: float, trunc_m: float, *, max_weight: float = 1e4,
+                 integrate_rgb: bool = False, depth_max_m: float = 6.0, arch: str = "cpu"):
+        voxel_size_m, trunc_m = float(voxel_size_m), float(trunc_m)
+        if not (math.isfinite(voxel_size_m) and 1e-4 <= voxel_size_m <= 1.0):
+            raise BftaichiError(f"voxel_size_m = {voxel_size_m} is out of range [0.0001, 1] m")
+        if not (math.isfinite(trunc_m) and trunc_m >= voxel_size_m):
+            raise BftaichiError(f"trunc_m = {trunc_m} must be at least one voxel ({voxel_size_m} m)")
+        if not (max_weight >= 1):
+            raise BftaichiError(f"max_weight = {max_weight} must be >= 1")
+        if not (depth_max_m > 0):
+            raise BftaichiError(f"depth_max_m = {depth_max_m} must be > 0")
+        if not backend.is_initialized():
+            backend.init(arch)
+        from kernels.tsdf import SparseTSDF
+
+        self.voxel_size_m = voxel_size_m
+        self.trunc_m = trunc_m
+        self.depth_max_m = float(depth_max_m)
+        self.integrate_rgb = bool(integrate_rgb)
+        self._vol = SparseTSDF(voxel_size_m, trunc_m, max_weight=max_weight,
+                               with_color=integrate_rgb)
+        self._stride: int | None = None
+        self.n_frames = 0
+        self.n_pixels = 0  # valid depth pixels integrated
+        self.n_empty_frames = 0  # frames that updated no voxel
+
+    @property
+    def kernel(self):
+        """The underlying :class:`kernels.tsdf.SparseTSDF` (for embedding)."""
+        return self._vol
+
+    def integrate(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
+                  rgb: np.ndarray | None = None, name: str = "frame") -> int:
+        """Fuse one depth frame; return the number of voxel updates it made.
+
+        Args:
+            depth_m: (H, W) depth along the camera z axis, metres. NaN, inf, <= 0 and values beyond
+                ``depth_max_m`` are ignored.
+            K: (3, 3) pinhole intrinsics.
+            T_W_C: (4, 4) camera-to-world pose.
+            rgb: optional (H, W, 3) uint8 colour registered to the depth.
+            name: used in error messages.
+        """
+        depth = check_depth(depth_m, name)
+        K = check_K(K, name)
+        T_W_C = check_pose(T_W_C, name)
+        depth = depth.astype(np.float32, copy=False)
+        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.depth_max_m)
+        depth = np.ascontiguousarray(np.where(valid, depth, np.float32(0)))
+        if rgb is not None and self.integrate_rgb:
+            rgb = np.asarray(rgb)
+            if rgb.shape != depth.shape + (3,) or rgb.dtype != np.uint8:
+                raise BftaichiError(f"{name}: rgb must be (H, W, 3) uint8 matching the depth "
+                                    f"{depth.shape}, got {rgb.shape} {rgb.dtype}")
+            rgb = np.ascontiguousarray(rgb)
+        if self._stride is None:
+            self._stride = auto_activation_stride(K, self.voxel_size_m, self.depth_max_m)
+        n_valid = int(valid.sum())
+        updates = self._vol.integrate(depth, K, T_W_C, rgb=rgb, activation_stride=self._stride)
+        self.n_frames += 1
+        self.n_pixels += n_valid
+        if updates == 0:
+            self.n_empty_frames += 1
+        return updates
+
+    def export(self) -> dict[str, np.ndarray]:
+        """Observed voxels sorted by ijk: ``ijk`` (N,3) int32, ``tsdf`` (N,) float32 metres
+        (clamped to +-trunc_m), ``weight`` (N,) float32 [, ``rgb`` (N,3) float32 0..255]."""
+        return self._vol.export()
+
+    def extract_mesh(self, min_weight: float = 1.0, voxels: dict | None = None) -> trimesh.Trimesh:
+        """Marching cubes at tsdf = 0 over cells whose 8 corners have weight >= ``min_weight``.
+
+        Returns a world-frame mesh with outward (toward free space) face orientation. Raises
+        NoSurfaceError when no voxel was observed. ``voxels`` reuses an :meth:`export` result.
+        """
+        from .meshing import extract_mesh, sample_field
+
+        v = self.export() if voxels is None else voxels
+        if len(v["ijk"]) == 0:
+            raise NoSurfaceError("no voxel was observed: every frame was empty or all-invalid, "
+                                 "or the poses point away from the surface")
+        vertices, faces = extract_mesh(v["ijk"], v["tsdf"], v["weight"] >= min_weight,
+                                       self.voxel_size_m)
+        colors = None
+        if "rgb" in v and len(vertices):
+            cols = [sample_field(v["ijk"], v["rgb"][:, c], v["weight"] > 0, self.voxel_size_m,
+                                 vertices) for c in range(3)]
+            colors = np.clip(np.nan_to_num(np.stack(cols, axis=1)), 0, 255).astype(np.uint8)
+        return trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)
+
+    def stats(self) -> dict[str, int]:
+        """Counts: frames, valid pixels, empty frames, allocated blocks, out-of-range samples."""
+        s = self._vol.stats()
+        return {"frames": self.n_frames, "pixels": self.n_pixels,
+                "empty_frames": self.n_empty_frames, "activation_stride": self._stride or 0, **s}

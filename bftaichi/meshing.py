@@ -1,0 +1,371 @@
+"""Marching cubes over a sparse set of voxels, and trilinear sampling of per-voxel fields.
+
+Voxel ``ijk`` (integer index) has its centre at ``(ijk + 0.5) * voxel_size`` (world metres,
+DESIGN.md section 2). A marching-cubes *cell* is the cube whose 8 corners are the voxel centres
+``ijk + {0,1}^3``; it is named by its lowest corner. A cell is meshed only if all 8 corner voxels
+are observed, so the edge of the observed region (the band edge of DESIGN.md section 3.7) makes no
+false surface.
+
+The sparse voxels are scattered into dense chunks of at most ``chunk_cells^3`` cells over the
+bounding box of the observed voxels (chunks that hold no voxel are never built). Neighbouring chunks
+share one layer of voxels, so every cell belongs to exactly one chunk. scikit-image's Lewiner
+marching cubes meshes each chunk; its vertices are then identified with the grid edge they lie on
+and re-placed from the global voxel values in float64, so a vertex on a chunk seam gets the same key
+and the same position from both chunks and is merged (a closed surface stays watertight).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import BftaichiError
+
+__all__ = ["extract_mesh", "sample_field"]
+
+#: Default chunk edge in cells: a 129^3 float32 chunk is 8.6 MB, small enough for any machine
+#: and large enough that the per-chunk overhead of skimage stays negligible.
+DEFAULT_CHUNK_CELLS = 128
+#: Largest allowed chunk edge: skimage returns chunk-local float32 vertex coordinates, whose
+#: rounding error (half an ulp, 1.5e-5 voxel at 256) must stay far below _IDENT_TOL.
+MAX_CHUNK_CELLS = 256
+#: A chunk-local vertex coordinate within this distance (voxels) of an integer lies on that grid
+#: plane. Far above the float32 error of skimage's output, far below any real edge fraction.
+_IDENT_TOL = 1e-4
+#: An edge crossing closer than this fraction of the edge to a corner is snapped onto that corner.
+#: Must exceed _IDENT_TOL so that a chunk that sees the vertex on the corner and a chunk that sees
+#: it on the edge reach the same key; moves a vertex by at most 1e-3 voxel.
+_SNAP_T = 1e-3
+#: skimage's regulariser of the edge interpolation weights 1 / (eps + |f - level|).
+_EPS = float(np.spacing(1.0))
+#: A corner whose trilinear weight is below this may be unobserved in sample_field (see there).
+_WEIGHT_TOL = 1e-3
+#: Largest index span per axis: keys are linearised into int64.
+_MAX_SPAN = 1 << 19
+
+_CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# input validation
+# --------------------------------------------------------------------------------------------
+
+def _check_voxels(ijk, values, observed, voxel_size) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                float]:
+    """Validate the sparse voxel arrays; return (ijk int64 (N,3), values float64 (N,),
+    observed bool (N,), voxel_size), rows sorted by ijk. Raises BftaichiError naming the argument."""
+    ijk = np.asarray(ijk)
+    if ijk.ndim != 2 or ijk.shape[1] != 3:
+        raise BftaichiError(f"ijk must have shape (N, 3), got {ijk.shape}")
+    if ijk.size and not np.issubdtype(ijk.dtype, np.integer):
+        raise BftaichiError(f"ijk must be an integer array (voxel indices), got dtype {ijk.dtype}")
+    n = ijk.shape[0]
+    values = np.asarray(values)
+    if values.shape != (n,):
+        raise BftaichiError(f"values must have shape ({n},) to match ijk, got {values.shape}")
+    if n and not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):
+        raise BftaichiError(f"values must be a float array, got dtype {values.dtype}")
+    observed = np.asarray(observed)
+    if observed.shape != (n,):
+        raise BftaichiError(f"observed must have shape ({n},) to match ijk, got {observed.shape}")
+    if n and observed.dtype != np.bool_:
+        raise BftaichiError(f"observed must be a bool array, got dtype {observed.dtype}")
+    try:
+        voxel_size = float(voxel_size)
+    except (TypeError, ValueError):
+        raise BftaichiError(f"voxel_size must be a number (metres), got {voxel_size!r}") from None
+    if not np.isfinite(voxel_size) or voxel_size <= 0:
+        raise BftaichiError(f"voxel_size must be a positive finite number (metres), got {voxel_size}")
+
+    ijk = ijk.astype(np.int64, copy=False)
+    values = values.astype(np.float64, copy=False)
+    observed = observed.astype(bool, copy=False)
+    if n == 0:
+        return ijk.reshape(0, 3), values, observed, voxel_size
+    if not np.all(np.isfinite(values[observed])):
+        bad = np.flatnonzero(observed & ~np.isfinite(values))[0]
+        raise BftaichiError(f"values must be finite where observed; row {bad} "
+                            f"(ijk {ijk[bad].tolist()}) is {values[bad]}")
+    span = ijk.max(axis=0) - ijk.min(axis=0) + 1
+    if np.any(span > _MAX_SPAN):
+        raise BftaichiError(f"ijk spans {span.tolist()} voxels; at most {_MAX_SPAN} per axis "
+                            "are supported")
+    order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))
+    ijk, values, observed = ijk[order], values[order], observed[order]
+    dup = np.all(ijk[1:] == ijk[:-1], axis=1)
+    if np.any(dup):
+        first = np.flatnonzero(dup)[0]
+        raise BftaichiError(f"ijk holds voxel {ijk[first].tolist()} more than once")
+    return ijk, values, observed, voxel_size
+
+
+def _linear_key(idx: np.ndarray, lo: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """Row-major linear index of integer points ``idx`` (..., 3) inside the box ``[lo, lo+dims)``."""
+    rel = idx - lo
+    return (rel[..., 0] * dims[1] + rel[..., 1]) * dims[2] + rel[..., 2]
+
+
+# --------------------------------------------------------------------------------------------
+# marching cubes
+# --------------------------------------------------------------------------------------------
+
+def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxel_size: float,
+                 level: float = 0.0, *, chunk_cells: int = DEFAULT_CHUNK_CELLS
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Iso-surface ``values == level`` of a sparse voxel field, by marching cubes.
+
+    Args:
+        ijk: (N, 3) integer voxel indices (int32 in bftaichi); each voxel at most once. Row order
+            does not matter: rows are sorted by ijk first, so the output is deterministic.
+        values: (N,) float signed distance in metres (or any field), positive in front of the
+            surface (free space), negative behind it. Must be finite where ``observed``.
+        observed: (N,) bool. A cell yields triangles only if all 8 corner voxels are present and
+            observed.
+        voxel_size: voxel edge in metres.
+        level: iso-value (same unit as ``values``).
+        chunk_cells: cells per chunk edge (1..256). Memory per chunk is about
+            ``20 * (chunk_cells + 1)^3`` bytes (43 MB at the default 128).
+
+    Returns:
+        vertices (V, 3) float32 world metres, faces (F, 3) int32. Faces are wound so that their
+        right-hand normals point toward increasing ``values`` (out of the object, into free
+        space). Vertices on the seam of two chunks are merged, crossings within 1e-3 of an edge
+        from a voxel centre are snapped onto it, degenerate faces are dropped, and every
+        returned vertex is used by a face.
+        Empty arrays of shape (0, 3) when there is no observed crossing of ``level``.
+
+    Raises:
+        BftaichiError (a ValueError) naming the bad argument.
+    """
+    from skimage.measure import marching_cubes
+
+    ijk, values, observed, voxel_size = _check_voxels(ijk, values, observed, voxel_size)
+    try:
+        level = float(level)
+    except (TypeError, ValueError):
+        raise BftaichiError(f"level must be a number, got {level!r}") from None
+    if not np.isfinite(level):
+        raise BftaichiError(f"level must be finite, got {level}")
+    if isinstance(chunk_cells, bool) or not isinstance(chunk_cells, (int, np.integer)) \
+            or not 1 <= chunk_cells <= MAX_CHUNK_CELLS:
+        raise BftaichiError(f"chunk_cells must be an integer in [1, {MAX_CHUNK_CELLS}], "
+                            f"got {chunk_cells!r}")
+    chunk_cells = int(chunk_cells)
+
+    empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    ijk, values = ijk[observed], values[observed]
+    if len(ijk) == 0:
+        return empty
+    lo = ijk.min(axis=0)
+    rel = ijk - lo                        # voxel_idx relative to the bounding box, >= 0
+    n_cells = rel.max(axis=0)             # cells per axis in the bounding box
+    if np.any(n_cells < 1):
+        return empty
+    # Vertex keys live on the voxel grid of the box, plus one margin layer.
+    key_dims = n_cells + 2
+    grid_keys_end = int(np.prod(key_dims)) * 4    # < 2^60 since each span <= _MAX_SPAN
+
+    # --- assign voxels to chunks. Chunk q covers cells [q*C, (q+1)*C) and so voxels
+    # [q*C, (q+1)*C] per axis: a voxel on a chunk boundary also belongs to the previous chunk.
+    c = chunk_cells
+    q = rel // c
+    boundary = (rel % c == 0) & (rel > 0)
+    n_chunks = (n_cells + c - 1) // c     # chunks per axis that hold cells
+    rows, chunk_idx = [], []
+    for shift in _CORNERS:                # 8 combinations of "also in the previous chunk" per axis
+        sel = np.all(boundary | (shift == 0), axis=1)
+        qs = q[sel] - shift
+        keep = np.all(qs < n_chunks, axis=1)   # the last voxel layer may open an empty chunk
+        rows.append(np.flatnonzero(sel)[keep])
+        chunk_idx.append(qs[keep])
+    rows = np.concatenate(rows)
+    chunk_idx = np.concatenate(chunk_idx)
+    chunk_key = (chunk_idx[:, 0] * n_chunks[1] + chunk_idx[:, 1]) * n_chunks[2] + chunk_idx[:, 2]
+    order = np.argsort(chunk_key, kind="stable")
+    rows, chunk_idx, chunk_key = rows[order], chunk_idx[order], chunk_key[order]
+    starts = np.flatnonzero(np.r_[True, chunk_key[1:] != chunk_key[:-1]])
+    ends = np.r_[starts[1:], len(chunk_key)]
+
+    key_parts, pos_parts, face_parts = [], [], []
+    n_vertices = 0
+    n_centre = 0
+    for s, e in zip(starts, ends):
+        origin = chunk_idx[s] * c                         # chunk's first voxel, box-relative
+        shape = np.minimum(c, n_cells - origin) + 1       # voxels per axis in this chunk
+        local = rel[rows[s:e]] - origin
+        vol = np.full(shape, level, dtype=np.float32)
+        obs = np.zeros(shape, dtype=bool)
+        vol[local[:, 0], local[:, 1], local[:, 2]] = values[rows[s:e]]
+        obs[local[:, 0], local[:, 1], local[:, 2]] = True
+
+        # A cell (named by its lowest corner) is meshed if its 8 corners are observed and the
+        # level crosses it (skimage's corner test is `value - level > 0`).
+        above = vol.astype(np.float64) > level     # in float64, as skimage compares
+        all_obs = np.ones(shape - 1, dtype=bool)
+        any_above = np.zeros(shape - 1, dtype=bool)
+        all_above = np.ones(shape - 1, dtype=bool)
+        for a, b, d in _CORNERS:
+            sl = (slice(a, a + shape[0] - 1), slice(b, b + shape[1] - 1), slice(d, d + shape[2] - 1))
+            all_obs &= obs[sl]
+            any_above |= above[sl]
+            all_above &= above[sl]
+        active = all_obs & any_above & ~all_above
+        if not active.any():
+            continue
+        # skimage (0.19-0.26, _marching_cubes_lewiner_cy.pyx) visits the cell with lowest corner
+        # (x, y, z) only if mask[x+1, y+1, z+1]: the mask is read at the cell's highest corner.
+        # tests/test_meshing.py checks that an unobserved corner removes every cell touching it.
+        mask = np.zeros(shape, dtype=bool)
+        mask[1:, 1:, 1:] = active
+        # 'descent' gives faces whose right-hand normals point toward larger values (checked on a
+        # sphere SDF in tests/test_meshing.py).
+        verts, faces, _, _ = marching_cubes(vol, level, gradient_direction="descent",
+                                            allow_degenerate=True, mask=mask)
+
+        keys, pos, is_centre = _vertex_keys(verts.astype(np.float64), vol, level, origin, key_dims)
+        # Lewiner's cell-centre vertices are never shared: give each its own key past the grid.
+        keys[is_centre] = grid_keys_end + n_centre + np.arange(int(is_centre.sum()))
+        n_centre += int(is_centre.sum())
+        key_parts.append(keys)
+        pos_parts.append(pos)
+        face_parts.append(faces.astype(np.int64) + n_vertices)
+        n_vertices += len(verts)
+
+    if not face_parts:
+        return empty
+    keys = np.concatenate(key_parts)
+    pos = np.concatenate(pos_parts)
+    faces = np.concatenate(face_parts)
+
+    # Merge vertices with equal keys (chunk seams, snapped corners); positions of equal keys are
+    # equal by construction. np.unique sorts the keys, so the vertex order is deterministic.
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    faces = inverse.reshape(-1)[faces]
+    pos = pos[first]
+    degenerate = ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2])
+                  | (faces[:, 0] == faces[:, 2]))
+    faces = faces[~degenerate]
+    if len(faces) == 0:
+        return empty
+    used, faces = np.unique(faces, return_inverse=True)
+    faces = faces.reshape(-1, 3)
+    vertices = (pos[used] + lo + 0.5) * voxel_size
+    return vertices.astype(np.float32), faces.astype(np.int32)
+
+
+def _vertex_keys(verts: np.ndarray, vol: np.ndarray, level: float, origin: np.ndarray,
+                 key_dims: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Identify skimage's chunk-local vertices with grid features and re-place them.
+
+    Each marching-cubes vertex lies on a grid point, on a grid edge (one fractional coordinate) or,
+    for Lewiner's ambiguous cases, inside a cell (two or more fractional coordinates).
+
+    Returns:
+        keys (V,) int64: ``4 * point_key + axis`` for a crossing of the edge from that grid point
+            along ``axis``, ``4 * point_key + 3`` for a grid point; undefined for centre vertices.
+        pos (V, 3) float64: box-relative grid coordinates (voxels). Edge crossings are
+            recomputed in float64 from the two end values with skimage's own interpolation
+            ``t = (eps + |f0|) / (2 eps + |f0| + |f1|)`` (f = value - level), so every chunk
+            that sees an edge places its vertex identically.
+        is_centre (V,) bool.
+    """
+    r = np.round(verts)
+    frac = np.abs(verts - r) >= _IDENT_TOL
+    n_frac = frac.sum(axis=1)
+    is_centre = n_frac >= 2
+    is_edge = n_frac == 1
+
+    point = r.astype(np.int64)            # chunk-local grid point for point vertices
+    keys = np.zeros(len(verts), dtype=np.int64)
+    pos = verts + origin                  # centre vertices keep skimage's position
+
+    axis = np.argmax(frac, axis=1)
+    ev = np.flatnonzero(is_edge)
+    ax = axis[ev]
+    p0 = point[ev].copy()
+    p0[np.arange(len(ev)), ax] = np.floor(verts[ev, ax]).astype(np.int64)
+    p1 = p0.copy()
+    p1[np.arange(len(ev)), ax] += 1
+    f0 = np.abs(vol[p0[:, 0], p0[:, 1], p0[:, 2]].astype(np.float64) - level)
+    f1 = np.abs(vol[p1[:, 0], p1[:, 1], p1[:, 2]].astype(np.float64) - level)
+    t = (_EPS + f0) / (2.0 * _EPS + f0 + f1)
+    snap0 = t < _SNAP_T
+    snap1 = t > 1.0 - _SNAP_T
+    on_edge = ~(snap0 | snap1)
+    # snapped crossings become grid points
+    point[ev[snap0]] = p0[snap0]
+    point[ev[snap1]] = p1[snap1]
+    is_point = ~is_centre
+    is_point[ev[on_edge]] = False
+
+    pts = point[is_point] + origin
+    keys[is_point] = _linear_key(pts, -1, key_dims) * 4 + 3
+    pos[is_point] = pts
+    ee = ev[on_edge]
+    e0 = p0[on_edge] + origin
+    keys[ee] = _linear_key(e0, -1, key_dims) * 4 + ax[on_edge]
+    epos = e0.astype(np.float64)
+    epos[np.arange(len(ee)), ax[on_edge]] += t[on_edge]
+    pos[ee] = epos
+    return keys, pos, is_centre
+
+
+# --------------------------------------------------------------------------------------------
+# trilinear sampling
+# --------------------------------------------------------------------------------------------
+
+def sample_field(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxel_size: float,
+                 points: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of a per-voxel field at world points.
+
+    The field is known at voxel centres ``(ijk + 0.5) * voxel_size``; a point is interpolated from
+    the 8 voxels of the cell that contains it. Corners whose trilinear weight is below 1e-3 may be
+    missing or unobserved (they are dropped and the remaining weights renormalised, changing the
+    result by at most 0.1 % of the local value range): this keeps mesh vertices that lie on the
+    outer face of an observed cell (float32 round-off included) from turning NaN.
+
+    Args:
+        ijk, values, observed: the sparse field, as for :func:`extract_mesh` (values may be any
+            per-voxel float, e.g. the posterior std; must be finite where observed).
+        voxel_size: voxel edge in metres.
+        points: (P, 3) float world metres, finite.
+
+    Returns:
+        (P,) float32 interpolated values; NaN where a contributing voxel is absent or unobserved.
+    """
+    ijk, values, observed, voxel_size = _check_voxels(ijk, values, observed, voxel_size)
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise BftaichiError(f"points must have shape (P, 3), got {points.shape}")
+    if points.size and not (np.issubdtype(points.dtype, np.floating)
+                            or np.issubdtype(points.dtype, np.integer)):
+        raise BftaichiError(f"points must be a float array (metres), got dtype {points.dtype}")
+    points = points.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(points)):
+        raise BftaichiError("points must be finite (world metres)")
+    out = np.full(len(points), np.nan, dtype=np.float32)
+    if len(points) == 0 or not observed.any():
+        return out
+    ijk, values = ijk[observed], values[observed]
+
+    g = points / voxel_size - 0.5         # continuous voxel_idx
+    base = np.floor(g).astype(np.int64)
+    f = g - base                          # (P, 3) in [0, 1)
+    corners = base[:, None, :] + _CORNERS[None, :, :]                   # (P, 8, 3)
+    w = np.prod(np.where(_CORNERS[None, :, :] == 1, f[:, None, :], 1.0 - f[:, None, :]), axis=2)
+
+    lo = ijk.min(axis=0)
+    dims = ijk.max(axis=0) - lo + 1
+    keys = _linear_key(ijk, lo, dims)     # sorted ascending, since ijk is sorted
+    inside = np.all((corners >= lo) & (corners < lo + dims), axis=2)    # (P, 8)
+    ck = np.where(inside, _linear_key(np.where(inside[..., None], corners, lo), lo, dims), -1)
+    pos = np.clip(np.searchsorted(keys, ck), 0, len(keys) - 1)
+    found = inside & (keys[pos] == ck)
+
+    needed = w >= _WEIGHT_TOL
+    ok = np.all(found | ~needed, axis=1)
+    wf = np.where(found, w, 0.0)
+    vsum = np.sum(wf * np.where(found, values[pos], 0.0), axis=1)
+    wsum = np.sum(wf, axis=1)
+    ok &= wsum > 0
+    out[ok] = (vsum[ok] / wsum[ok]).astype(np.float32)
+    return out

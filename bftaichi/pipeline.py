@@ -1,0 +1,191 @@
+"""A run: frames -> TSDF bootstrap -> mesh -> metrics -> the DESIGN.md section 4 outputs.
+
+Stages implemented at this point: the TSDF bootstrap (``tsdf_mesh.ply``), ``band.npz`` with the
+observed voxels' ``tsdf`` and ``weight``, ``report.json`` and ``config.toml``. The probabilistic
+posterior (``mesh.ply`` with sigma, ``mean``/``var`` in ``band.npz``) is a later stage.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from . import __version__, backend
+from .config import Config, parse_slice, save_config
+from .errors import DataError, NoSurfaceError
+from .fusion import TSDFVolume
+from .io import prepare_out_dir, write_json, write_mesh_ply, write_npz
+
+__all__ = ["open_frames", "run", "load_gt_mesh"]
+
+
+def open_frames(cfg: Config):
+    """The frame source of a config: a SyntheticDataset or a recorded dataset (lazy)."""
+    s = cfg.scene
+    if s.source == "synthetic":
+        from .synthetic import SyntheticDataset
+
+        ds = SyntheticDataset(cfg.synthetic, s.depth_min_m, s.depth_max_m)
+        if s.frames:
+            sl = parse_slice(s.frames, "scene.frames")
+            ds = _SlicedSynthetic(ds, sl)
+        return ds
+    from .datasets import open_dataset
+
+    if not Path(s.data).exists():
+        raise DataError(f"scene.data: dataset folder {s.data} does not exist "
+                        "(shared data lives in ../shared/data relative to the project root; "
+                        "see ../shared/data/README.md)")
+    frames = parse_slice(s.frames, "scene.frames") if s.frames else None
+    return open_dataset(s.data, format=s.format, depth_min_m=s.depth_min_m,
+                        depth_max_m=s.depth_max_m, frames=frames,
+                        load_rgb=cfg.tsdf.integrate_rgb)
+
+
+class _SlicedSynthetic:
+    """A slice of a synthetic sequence that keeps the dataset's attributes."""
+
+    def __init__(self, ds, sl: slice):
+        self._ds = ds
+        self._idx = list(range(len(ds)))[sl]
+        if not self._idx:
+            raise DataError(f"scene.frames selects no frame of the {len(ds)} synthetic views")
+        self.K, self.image_size, self.name = ds.K, ds.image_size, ds.name
+        self.gt_mesh, self.gt_mesh_path = ds.gt_mesh, ds.gt_mesh_path
+        self.poses = ds.poses[self._idx]
+
+    def __len__(self):
+        return len(self._idx)
+
+    def __getitem__(self, i):
+        return self._ds[self._idx[i]]
+
+    def __iter__(self):
+        return (self._ds[i] for i in self._idx)
+
+
+def load_gt_mesh(cfg: Config, frames) -> trimesh.Trimesh | None:
+    """Ground truth for metrics: the synthetic mesh, ``scene.gt_mesh``, or the dataset's own."""
+    from .metrics import load_mesh
+
+    if getattr(frames, "gt_mesh", None) is not None:
+        return frames.gt_mesh
+    path = cfg.scene.gt_mesh
+    if path == "auto" or not path:
+        path = getattr(frames, "gt_mesh_path", None)
+        if not path:
+            return None
+    return load_mesh(path)
+
+
+class _Timer:
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = round(self.seconds.get(stage, 0.0) + time.perf_counter() - t0, 4)
+
+
+def _progress(iterable, total: int, desc: str, enabled: bool):
+    from tqdm import tqdm
+
+    # disable=None: tqdm turns itself off when stderr is not a terminal (CI, pipes).
+    return tqdm(iterable, total=total, desc=desc, unit="frame", disable=None if enabled else True,
+                leave=False)
+
+
+def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
+        progress: bool = True) -> dict:
+    """Run the pipeline of ``cfg`` and write its outputs into ``out_dir``; return the report.
+
+    Raises BftaichiError subclasses for bad input (naming the file, frame or key) and
+    NoSurfaceError when no voxel was observed (then no mesh is written).
+    """
+    cfg.check()
+    out = prepare_out_dir(out_dir, overwrite=overwrite)
+    timer = _Timer()
+    t_start = time.perf_counter()
+    with timer("init"):
+        backend.init(cfg.run.arch)
+    with timer("load"):
+        frames = open_frames(cfg)
+        gt = load_gt_mesh(cfg, frames)
+    vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m,
+                     max_weight=cfg.tsdf.max_weight, integrate_rgb=cfg.tsdf.integrate_rgb,
+                     depth_max_m=cfg.scene.depth_max_m, arch=cfg.run.arch)
+    read_s = 0.0
+    with timer("tsdf"):
+        it = iter(frames)
+        for _ in _progress(range(len(frames)), len(frames), "integrate", progress):
+            t0 = time.perf_counter()
+            frame = next(it)
+            read_s += time.perf_counter() - t0
+            vol.integrate(frame.depth_m, frame.K, frame.T_W_C, rgb=frame.rgb, name=frame.name)
+    timer.seconds["tsdf"] = round(timer.seconds["tsdf"] - read_s, 4)
+    timer.seconds["read_frames"] = round(read_s, 4)
+    stats = vol.stats()
+    with timer("export"):
+        voxels = vol.export()
+    if len(voxels["ijk"]) == 0:
+        raise NoSurfaceError(
+            f"no surface was observed in {stats['frames']} frames ({stats['pixels']} valid depth "
+            "pixels): check the depth range (scene.depth_min_m / depth_max_m), the depth scale, and "
+            "that poses are T_W_C (camera-to-world), not T_C_W. No mesh was written.")
+    with timer("mesh"):
+        mesh = vol.extract_mesh(cfg.mesh.min_weight, voxels=voxels)
+    if len(mesh.faces) == 0:
+        raise NoSurfaceError(
+            f"{len(voxels['ijk'])} voxels were observed but no cell has all 8 corners with weight >= "
+            f"mesh.min_weight = {cfg.mesh.min_weight}, so there is no surface to mesh; lower "
+            "mesh.min_weight or add frames. No mesh was written.")
+    metrics = {}
+    if gt is not None:
+        from .metrics import geometry_metrics
+
+        with timer("metrics"):
+            metrics["tsdf_mesh.ply"] = geometry_metrics(
+                mesh, gt, cfg.eval.thresholds_mm, cfg.eval.n_samples, cfg.eval.seed)
+    with timer("write"):
+        colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None
+        write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors)
+        write_npz(out / "band.npz", ijk=voxels["ijk"], voxel_size=np.float32(cfg.tsdf.voxel_size_m),
+                  tsdf=voxels["tsdf"], weight=voxels["weight"])
+        save_config(cfg, out / "config.toml")
+    report = {
+        "bftaichi_version": __version__,
+        "scene": cfg.scene.name,
+        "source": getattr(frames, "name", cfg.scene.data),
+        "stages_run": ["tsdf", "mesh"] + (["metrics"] if metrics else []),
+        "seconds": {**timer.seconds, "total": round(time.perf_counter() - t_start, 4)},
+        "counts": {
+            "frames": stats["frames"],
+            "empty_frames": stats["empty_frames"],
+            "pixels_used": stats["pixels"],
+            "observed_voxels": int(len(voxels["ijk"])),
+            "blocks": stats["blocks"],
+            "activation_stride": stats["activation_stride"],
+            "out_of_range_samples": stats["out_of_range_samples"],
+            "tsdf_mesh_vertices": int(len(mesh.vertices)),
+            "tsdf_mesh_faces": int(len(mesh.faces)),
+        },
+        "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m,
+                 "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
+        "metrics": metrics,
+        "has_ground_truth": gt is not None,
+        "machine": {"python": platform.python_version(), "arch": cfg.run.arch,
+                    "cpus": os.cpu_count()},
+        "config": cfg.to_dict(),
+    }
+    write_json(out / "report.json", report)
+    return report
