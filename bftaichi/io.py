@@ -17,7 +17,7 @@ import numpy as np
 from .errors import BftaichiError
 
 __all__ = ["atomic_write_bytes", "write_json", "write_npz", "write_mesh_ply", "read_mesh_ply",
-           "prepare_out_dir"]
+           "prepare_out_dir", "ensure_out_dir"]
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -112,9 +112,8 @@ def read_mesh_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict
 RUN_MARKERS = ("report.json", "tsdf_mesh.ply", "mesh.ply", "band.npz")
 
 
-def prepare_out_dir(out: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Create ``out`` (and parents) and check it is writable. Refuse a folder that already holds a
-    run's outputs unless ``overwrite``. Raises BftaichiError naming the folder."""
+def ensure_out_dir(out: str | os.PathLike) -> Path:
+    """Create folder ``out`` (and parents) and check it is writable; BftaichiError names it."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise BftaichiError(f"output folder {out} exists and is not a folder")
@@ -124,6 +123,13 @@ def prepare_out_dir(out: str | os.PathLike, overwrite: bool = False) -> Path:
         raise BftaichiError(f"cannot create output folder {out}: {e.strerror or e}") from None
     if not os.access(out, os.W_OK | os.X_OK):
         raise BftaichiError(f"output folder {out} is not writable")
+    return out
+
+
+def prepare_out_dir(out: str | os.PathLike, overwrite: bool = False) -> Path:
+    """:func:`ensure_out_dir`, and refuse a folder that already holds a run's outputs unless
+    ``overwrite``. Raises BftaichiError naming the folder."""
+    out = ensure_out_dir(out)
     existing = [m for m in RUN_MARKERS if (out / m).exists()]
     if existing and not overwrite:
         raise BftaichiError(

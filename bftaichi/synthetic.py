@@ -47,10 +47,10 @@ import numpy as np
 import trimesh
 
 from .config import SyntheticConfig
-from .errors import BftaichiError, ConfigError, DataError
+from .errors import ConfigError, DataError
 from .frame import Frame, clean_depth
 from .geometry import check_K, check_pose, intrinsics, look_at
-from .io import atomic_write_bytes, write_json, write_mesh_ply
+from .io import atomic_write_bytes, ensure_out_dir, write_json, write_mesh_ply
 
 __all__ = [
     "PRIMITIVES",
@@ -454,13 +454,7 @@ def write_7scenes(dataset: SyntheticDataset, out_dir, progress: bool = False) ->
     """
     from tqdm import tqdm
 
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise BftaichiError(f"output folder {out} exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise BftaichiError(f"cannot create output folder {out}: {e.strerror or e}") from None
+    out = ensure_out_dir(out_dir)
     width, height = dataset.image_size
     atomic_write_bytes(out / "camera-intrinsics.txt", _matrix_text(dataset.K))
     for i in tqdm(range(len(dataset)), desc=f"writing {out}", unit="frame", disable=not progress):
