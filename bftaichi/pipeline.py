@@ -139,6 +139,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         voxels = vol.export()
     if len(voxels["ijk"]) == 0:
         raise NoSurfaceError(
+            f"{cfg.scene.data or getattr(frames, 'name', 'the scene')}: "
             f"no surface was observed in {stats['frames']} frames ({stats['pixels']} valid depth "
             "pixels): check the depth range (scene.depth_min_m / depth_max_m), the depth scale, and "
             "that poses are T_W_C (camera-to-world), not T_C_W. No mesh was written.")

@@ -1,39 +1,283 @@
 """Sparse projective TSDF (Curless & Levoy), the bootstrap of BayesFusion-SDF (DESIGN.md 3.1).
 
-Field layout (all declared in :meth:`SparseTSDF._place`):
+Layout::
 
-    voxel data   root -> pointer(64^3) -> pointer(16^3) -> dense(8^3) -> {tsdf, weight[, rgb]}
-    frame blocks root -> pointer(64^3) -> bitmasked(16^3) -> touched        (one cell per block)
+    block map    root -> pointer(4096 volumes) -> pointer(64^3) -> pointer(16^3)
+                      -> {block_slot i32, block_stamp i32}            (one cell per 8^3 block)
+    voxel pool   ndarrays tsdf (S*512,) f32, weight (S*512,) f32 [, rgb (S*512, 3) f32]
+    slot table   ndarray slot_block (S, 3) i32: block index of the block in each pool slot
+    frame list   ndarray frame_list (F, 4) i32: (map block index, slot) of each touched block
+    block cache  ndarray cache (65536,) i64: direct-mapped "already listed this frame" cache
 
-* A *block* is 8^3 voxels (the dense leaf), allocated only when a depth ray passes within the
-  truncation band of it. The two pointer levels give a virtual range of 64*16 = 1024 blocks =
-  8192 voxels per axis (82 m at 1 cm voxels) for ~2 MB of top-level pointers; a second-level
-  chunk (16^3 block pointers, 32 KB) is allocated on first use.
-* Voxel index ``ijk`` (may be negative) has centre ``(ijk + 0.5) * voxel_size`` in the world frame
-  and lives at field index ``ijk + OFFSET``; block index ``b = floor(ijk / 8)``.
-* ``touched`` marks the blocks that the current frame's rays activated; it is cleared after
-  every frame. Only those blocks are integrated (as Open3D's VoxelBlockGrid does), so a frame
-  costs time in proportion to the surface it sees, not to the size of the map.
+* A *block* is 8^3 voxels. Block index ``b = floor(ijk / 8)``; voxel ``ijk`` (may be negative)
+  has centre ``(ijk + 0.5) * voxel_size`` in the world frame.
+* The *block map* is a sparse Taichi SNode tree: below a per-volume pointer, two pointer levels
+  give a virtual range of 64 * 16 = 1024 blocks (8192 voxels, 82 m at 1 cm voxels) per axis,
+  centred on the origin (block ``b`` sits at map index ``b + 512``). A volume's top level
+  (64^3 pointers, 2 MB) is allocated when it first touches a block, a 16^3 chunk of block cells
+  when a ray first reaches it. A block cell holds the block's *slot* (1-based, 0 = none yet)
+  and the number of the last frame that touched the block.
+* The voxels of the block in (0-based) slot ``s`` live at ``s * 512 + t`` of the dense *pool*,
+  ``t = 64 a + 8 b + c`` for voxel ``8 b_ijk + (a, b, c)``. A block is thus two contiguous 2 KB
+  runs (tsdf, weight): the integration streams dense memory and looks the sparse map up once per
+  block and frame, never per voxel. The pool grows by doubling (one copy) when a frame allocates
+  more blocks than it holds; the sparse map never moves.
+* All volumes of a Taichi program share one block-map tree (one slice per volume) and the
+  kernels are module-level functions whose inputs are arguments (voxel size, truncation and
+  weight cap arrive in a per-frame parameter vector), so a new volume does not recompile
+  anything, and Taichi's offline cache serves every later run. The tree is rebuilt after
+  ``ti.init``/``ti.reset``.
+* Per frame, :func:`_activate` lists the blocks the frame's rays touch (unique; new blocks get a
+  slot), then :func:`_integrate` updates every voxel of the listed blocks. Only those blocks are
+  visited (as Open3D's VoxelBlockGrid does), so a frame costs time in proportion to the surface
+  it sees, not to the size of the map.
 
 Determinism: block activation is idempotent and every voxel is updated by exactly one thread per
-frame, so the volume after any sequence of frames is bitwise reproducible (no float atomics).
+frame, so the voxel values after any sequence of frames are bitwise reproducible (no float
+atomics). Slot numbers and the frame-list order depend on thread scheduling; they never reach
+the output (:meth:`SparseTSDF.export` sorts by ``ijk``).
 """
 
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl
 
-BLOCK = 8  # voxels per block edge (dense leaf)
-L1 = 64  # top pointer level, blocks^(1/3) per cell ... (L1 * L2 blocks per axis in all)
-L2 = 16  # second pointer level
+BLOCK = 8  # voxels per block edge
+BLOCK_VOXELS = BLOCK ** 3
+MAX_VOLUMES = 1 << 12  # volumes per Taichi program (ids are not reused)
+L1 = 64  # first spatial pointer level: cells per axis
+L2 = 16  # second spatial pointer level: blocks per axis in one first-level cell
 BLOCKS_PER_AXIS = L1 * L2
-VOXELS_PER_AXIS = BLOCKS_PER_AXIS * BLOCK
-OFFSET = VOXELS_PER_AXIS // 2  # voxel ijk is stored at field index ijk + OFFSET
-BLOCK_OFFSET = OFFSET // BLOCK
-CACHE_SIZE = 1 << 16
+BLOCK_OFFSET = BLOCKS_PER_AXIS // 2  # block b is stored at map index b + BLOCK_OFFSET
+CACHE_BITS = 16  # the block cache has 2^16 entries (512 KB)
+FIRST_POOL_BLOCKS = 1024  # initial pool capacity in blocks (2 MB per float field)
+FIRST_LIST_BLOCKS = 4096  # initial frame-list capacity in blocks
+
+# Per-frame parameters, one float64 vector (a single cheap kernel argument):
+P_A = 0  # 9: A = K R_CW * voxel_size, row-major; K x_C of voxel ijk = A ijk + c
+P_C = 9  # 3: c = K (R_CW (0.5 voxel_size) (1, 1, 1) + t_CW)
+P_M = 12  # 9: M = R_WC K^-1 / block_size, row-major; pixel (u, v) at depth z is in the
+P_O = 21  # 3:    block at floor(o + z M (u, v, 1)), o = t_WC / block_size
+P_TRUNC = 24  # truncation tau_b, metres
+P_MAXW = 25  # weight cap
+P_STEP = 26  # activation sample spacing along a ray, blocks
+N_PARAMS = 27
+# Integer counters of a volume (int64 vector shared with the kernels):
+C_OUT = 0  # activation samples outside the block map's index range (all frames)
+C_LISTED = 1  # blocks listed by the current frame (may exceed the list capacity)
+C_SLOTS = 2  # allocated blocks = used pool slots
+C_UPDATES = 3  # voxel updates (all frames)
+N_COUNTS = 4
 
 
-@ti.data_oriented
+class _BlockMap:
+    """The sparse block map shared by all volumes of one Taichi program."""
+
+    def __init__(self):
+        self.slot = ti.field(ti.i32)  # 1-based pool slot of the block, 0 = unallocated
+        self.stamp = ti.field(ti.i32)  # last frame (of its volume) that listed the block
+        fb = ti.FieldsBuilder()
+        fb.pointer(ti.l, MAX_VOLUMES).pointer(ti.ijk, L1).pointer(ti.ijk, L2).place(
+            self.slot, self.stamp)
+        self.tree = fb.finalize()
+        self.prog = impl.get_runtime().prog
+        self.next_volume = 0
+
+
+_MAP = None
+
+
+def _block_map() -> _BlockMap:
+    """The block map of the current Taichi program (rebuilt after ti.init / ti.reset)."""
+    global _MAP
+    prog = impl.get_runtime().prog
+    if prog is None:
+        raise RuntimeError("Taichi is not initialised: call ti.init (or bftaichi.init) before "
+                           "creating a SparseTSDF")
+    if _MAP is None or _MAP.prog is not prog:
+        _MAP = _BlockMap()
+    return _MAP
+
+
+# -- kernels ---------------------------------------------------------------------------------
+
+@ti.func
+def _floor_i32(x):
+    """floor(x) as int32 for |x| < 2^31 without a libm call (Taichi's CPU target has no
+    SSE4.1 ``roundss``, so ti.floor is a function call): truncate, then step down where the
+    truncation went up (negative non-integers)."""
+    t = ti.cast(x, ti.i32)
+    return t - ti.cast(t > x, ti.i32)  # the comparison promotes t to x's float type
+
+
+@ti.func
+def _touch(blk, vid: ti.i32, frame: ti.i32, slot_map: ti.template(), stamp_map: ti.template(),
+           cache: ti.types.ndarray(), counts: ti.types.ndarray(),
+           frame_list: ti.types.ndarray()):
+    """List map block ``blk`` of volume ``vid`` once per frame; give a new block a pool slot."""
+    key = (blk[0] << 20) | (blk[1] << 10) | blk[2]
+    tag = (ti.cast(frame, ti.i64) << 30) | ti.cast(key, ti.i64)
+    h = ti.cast((ti.cast(key, ti.u32) * ti.u32(2654435761)) >> ti.u32(32 - CACHE_BITS), ti.i32)
+    if cache[h] != tag:  # a race here only costs a redundant (idempotent) check below
+        cache[h] = tag
+        # atomic_max returns the previous stamp: exactly one thread per frame sees it below
+        # `frame`, so only that thread reads/assigns the slot (no race on the slot cell).
+        if ti.atomic_max(stamp_map[blk, vid], frame) < frame:
+            s = slot_map[blk, vid]
+            if s == 0:
+                s = ti.cast(ti.atomic_add(counts[C_SLOTS], 1), ti.i32) + 1
+                slot_map[blk, vid] = s
+            n = ti.atomic_add(counts[C_LISTED], 1)
+            if n < frame_list.shape[0]:
+                for c in ti.static(range(3)):
+                    frame_list[n, c] = blk[c]
+                frame_list[n, 3] = s - 1
+
+
+@ti.func
+def _activate_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), stride: ti.i32,
+                  frame: ti.i32, vid: ti.i32, slot_map: ti.template(), stamp_map: ti.template(),
+                  cache: ti.template(), counts: ti.template(), frame_list: ti.template()):
+    """Activation of pixel row ``vs * stride``: list every block that the ray segment
+    [d - tau_b, d + tau_b] of a valid pixel (every ``stride``-th in the row) passes. The
+    segment is sampled at n + 1 evenly spaced points, n = ceil(length / step) + 1 with step
+    ``prm[P_STEP]`` = half a block (4 samples on a block-long segment, like the 4 of Open3D's
+    compute_unique_block_coordinates), so no block it crosses by more than a corner is missed.
+    Float32, incremental stepping (a per-sample division is what LLVM makes of x = a + s/n)."""
+    M = ti.Matrix([[ti.cast(prm[P_M + 3 * r + c], ti.f32) for c in ti.static(range(3))]
+                   for r in ti.static(range(3))])
+    o = ti.cast(ti.Vector([prm[P_O], prm[P_O + 1], prm[P_O + 2]]), ti.f32)
+    trunc = ti.cast(prm[P_TRUNC], ti.f32)
+    inv_step = ti.cast(1.0 / prm[P_STEP], ti.f32)
+    v = vs * stride
+    for us in range((depth.shape[1] + stride - 1) // stride):
+        u = us * stride
+        d = depth[v, u]
+        if d > 0:
+            ray = M @ ti.Vector([ti.cast(u, ti.f32), ti.cast(v, ti.f32), 1.0])
+            x = o + ti.max(d - trunc, 1e-3) * ray  # segment start, block units
+            seg = o + (d + trunc) * ray - x
+            n = 1 - _floor_i32(-seg.norm() * inv_step)  # ceil(length / step) + 1
+            delta = seg / ti.cast(n, ti.f32)
+            last = ti.Vector([-1, -1, -1])
+            for _ in range(n + 1):
+                blk = _floor_i32(x) + BLOCK_OFFSET
+                if (blk >= 0).all() and (blk < BLOCKS_PER_AXIS).all():
+                    if (blk != last).any():  # consecutive samples often share a block
+                        last = blk
+                        _touch(blk, vid, frame, slot_map, stamp_map, cache, counts, frame_list)
+                else:
+                    ti.atomic_add(counts[C_OUT], 1)
+                x += delta
+
+
+@ti.func
+def _integrate_block(n: ti.i32, depth: ti.template(), rgb: ti.template(), prm: ti.template(),
+                     frame_list: ti.template(), tsdf: ti.template(), weight: ti.template(),
+                     color: ti.template(), slot_block: ti.template(), counts: ti.template(),
+                     with_color: ti.template()):
+    """Projective weighted-average update of the 512 voxels of listed block ``n``
+    (DESIGN.md 3.1): (u, v) = nearest pixel of K x_C = floor(K x_C / z_C + 0.5),
+    sdf = D(u, v) - z_C; observed if z_C > 0, D > 0 and sdf >= -tau_b;
+    tsdf_obs = min(1, sdf / tau_b); tsdf <- (W tsdf + tsdf_obs) / (W + 1), [rgb likewise],
+    W <- min(W + 1, max_weight)."""
+    H, W = depth.shape[0], depth.shape[1]
+    Wf, Hf = ti.cast(W, ti.f32), ti.cast(H, ti.f32)
+    step_i = ti.Vector([prm[P_A], prm[P_A + 3], prm[P_A + 6]])  # K x_C step along +i
+    step_j = ti.Vector([prm[P_A + 1], prm[P_A + 4], prm[P_A + 7]])
+    step_k = ti.Vector([prm[P_A + 2], prm[P_A + 5], prm[P_A + 8]])
+    trunc = ti.cast(prm[P_TRUNC], ti.f32)
+    inv_trunc = ti.cast(1.0 / prm[P_TRUNC], ti.f32)
+    max_w = ti.cast(prm[P_MAXW], ti.f32)
+    slot = frame_list[n, 3]
+    blk = ti.Vector([frame_list[n, 0], frame_list[n, 1], frame_list[n, 2]]) - BLOCK_OFFSET
+    for c in ti.static(range(3)):
+        slot_block[slot, c] = blk[c]
+    # K x_C of the block's first voxel centre, in float64 (large terms cancel); the per-voxel
+    # steps from it are small and stay in float32.
+    base = ti.cast(blk * BLOCK, ti.f64)
+    p_blk = ti.cast(step_i * base[0] + step_j * base[1] + step_k * base[2]
+                    + ti.Vector([prm[P_C], prm[P_C + 1], prm[P_C + 2]]), ti.f32)
+    di, dj, dk = ti.cast(step_i, ti.f32), ti.cast(step_j, ti.f32), ti.cast(step_k, ti.f32)
+    first = slot * BLOCK_VOXELS
+    n_obs = 0
+    for ab in range(BLOCK * BLOCK):
+        p_row = p_blk + di * ti.cast(ab // BLOCK, ti.f32) + dj * ti.cast(ab % BLOCK, ti.f32)
+        for c in ti.static(range(BLOCK)):  # unrolled: ~15 % faster than a loop
+            p = p_row + dk * float(c)
+            z = p[2]
+            if z > 0:
+                inv_z = 1.0 / z
+                # Nearest pixel = floor(x + 0.5): bounds are checked in float first, so the
+                # integer conversion (truncation toward zero) equals floor.
+                uh = p[0] * inv_z + 0.5
+                vh = p[1] * inv_z + 0.5
+                if uh >= 0 and uh < Wf and vh >= 0 and vh < Hf:
+                    u = ti.cast(uh, ti.i32)
+                    v = ti.cast(vh, ti.i32)
+                    d = depth[v, u]
+                    sdf = d - z
+                    if d > 0 and sdf >= -trunc:
+                        i = first + ab * BLOCK + c
+                        obs = ti.min(1.0, sdf * inv_trunc)
+                        w = weight[i]
+                        inv_w1 = 1.0 / (w + 1.0)
+                        tsdf[i] = (w * tsdf[i] + obs) * inv_w1
+                        if ti.static(with_color):
+                            for k in ti.static(range(3)):
+                                color[i, k] = (w * color[i, k]
+                                               + ti.cast(rgb[v, u, k], ti.f32)) * inv_w1
+                        weight[i] = ti.min(w + 1.0, max_w)
+                        n_obs += 1
+    ti.atomic_add(counts[C_UPDATES], n_obs)
+
+
+@ti.kernel
+def _integrate_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                     rgb: ti.types.ndarray(dtype=ti.u8, ndim=3),
+                     prm: ti.types.ndarray(dtype=ti.f64, ndim=1), stride: ti.i32, frame: ti.i32,
+                     vid: ti.i32, slot_map: ti.template(), stamp_map: ti.template(),
+                     cache: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                     counts: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                     frame_list: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                     tsdf: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                     weight: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                     color: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                     slot_block: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                     with_color: ti.template()):
+    """One frame in one launch: (1) activation, parallel over pixel rows (:func:`_activate_row`);
+    (2) if the frame list and the pool were large enough, integration, parallel over the listed
+    blocks (:func:`_integrate_block`); otherwise nothing is integrated and the caller grows
+    them and calls again with a new frame number.
+
+    Determinism: atomics only on integer counters and block stamps, so the listed *set* of
+    blocks is deterministic (its order is not); each voxel is updated by the one thread of its
+    block, no float atomics: the voxel values are bitwise reproducible."""
+    counts[C_LISTED] = 0
+    for vs in range((depth.shape[0] + stride - 1) // stride):
+        _activate_row(vs, depth, prm, stride, frame, vid, slot_map, stamp_map, cache, counts,
+                      frame_list)
+    n_blocks = ti.cast(counts[C_LISTED], ti.i32)
+    if (n_blocks > frame_list.shape[0]
+            or counts[C_SLOTS] * BLOCK_VOXELS > ti.cast(tsdf.shape[0], ti.i64)):
+        n_blocks = 0
+    ti.loop_config(block_dim=4)
+    for n in range(n_blocks):
+        _integrate_block(n, depth, rgb, prm, frame_list, tsdf, weight, color, slot_block,
+                         counts, with_color)
+
+
+@ti.kernel
+def _copy_rows(src: ti.types.ndarray(), dst: ti.types.ndarray(), n: ti.i32):
+    """dst[i, ...] = src[i, ...] for i < n (used to grow the pool)."""
+    for I in ti.grouped(src):
+        if I[0] < n:
+            dst[I] = src[I]
+
+
+# -- the volume ------------------------------------------------------------------------------
+
 class SparseTSDF:
     """A sparse TSDF volume with projective weighted-average integration.
 
@@ -44,7 +288,8 @@ class SparseTSDF:
         max_weight: cap of the running weight (each observation adds 1).
         with_color: also keep a weighted-average RGB per voxel.
 
-    ``ti.init`` must have been called before construction (fields are placed here).
+    ``ti.init`` must have been called before construction. All volumes of a program share the
+    compiled kernels; constructing one costs no compilation.
     """
 
     def __init__(self, voxel_size: float, trunc_m: float, max_weight: float = 1e4,
@@ -54,123 +299,56 @@ class SparseTSDF:
         self.max_weight = float(max_weight)
         self.with_color = bool(with_color)
         self.block_size_m = self.voxel_size * BLOCK
-        self._place()
-        # Scalars written by kernels: [0] rays outside the index range, [1] voxels updated.
-        self.counters = ti.field(ti.i64, shape=2)
-        self._no_rgb = np.zeros((1, 1, 3), np.uint8)
-
-    # -- fields ----------------------------------------------------------------------------
-    def _place(self):
-        self.tsdf = ti.field(ti.f32)
-        self.weight = ti.field(ti.f32)
-        self.rgb = ti.Vector.field(3, ti.f32) if self.with_color else None
-        # Frame number that last touched a block; writing it allocates the block.
-        self.block_stamp = ti.field(ti.i32)
-        top = ti.root.pointer(ti.ijk, L1)
-        self.block_ptr = top.pointer(ti.ijk, L2)  # one cell per 8^3 block
-        self.block_ptr.place(self.block_stamp)
-        voxels = self.block_ptr.dense(ti.ijk, BLOCK)
-        if self.with_color:
-            voxels.place(self.tsdf, self.weight, self.rgb)
-        else:
-            voxels.place(self.tsdf, self.weight)
-        # Blocks touched by the current frame, as a compact list (unique entries).
-        self.frame_blocks = ti.Vector.field(3, ti.i32)
-        self.frame_blocks_cap = 1 << 18
-        ti.root.dense(ti.i, self.frame_blocks_cap).place(self.frame_blocks)
-        self.n_frame_blocks = ti.field(ti.i32, shape=())
-        # Direct-mapped cache in front of the sparse stamps: most samples of a frame hit a block
-        # an earlier sample already touched; the cache answers that with one dense load.
-        # Entries are (frame << 30 | block key); races only cause a redundant (idempotent) check.
-        self.cache = ti.field(ti.i64, shape=CACHE_SIZE)
+        self._map = _block_map()
+        if self._map.next_volume >= MAX_VOLUMES:
+            raise RuntimeError(f"more than {MAX_VOLUMES} SparseTSDF volumes in one Taichi "
+                               f"program; call ti.reset() or ti.init() to start over")
+        self.volume_id = self._map.next_volume
+        self._map.next_volume += 1
         self.frame_id = 0
+        self.counts = np.zeros(N_COUNTS, np.int64)
+        self._params = np.zeros(N_PARAMS, np.float64)
+        self._no_rgb = np.zeros((1, 1, 3), np.uint8)
+        self._cache = ti.ndarray(ti.i64, shape=(1 << CACHE_BITS,))
+        self.frame_list = ti.ndarray(ti.i32, shape=(FIRST_LIST_BLOCKS, 4))
+        self.pool_blocks = 0
+        self.tsdf = self.weight = self.rgb = self.slot_block = None
+        self._grow_pool(FIRST_POOL_BLOCKS)
 
-    # -- per-frame kernels -----------------------------------------------------------------
-    @ti.func
-    def _back_project(self, u: ti.f32, v: ti.f32, z: ti.f32, intr: ti.math.vec4, T: ti.math.mat4):
-        """World point of pixel (u, v) at camera depth z: p_W = T_W_C @ (z K^-1 [u, v, 1])."""
-        p_C = ti.Vector([(u - intr[2]) / intr[0] * z, (v - intr[3]) / intr[1] * z, z, 1.0])
-        return (T @ p_C).xyz
+    def _grow_pool(self, min_blocks: int):
+        """Reallocate the pool with room for at least ``min_blocks`` blocks, keeping the data."""
+        cap = max(FIRST_POOL_BLOCKS, self.pool_blocks)
+        while cap < min_blocks:
+            cap *= 2
+        n = cap * BLOCK_VOXELS
+        new = {"tsdf": ti.ndarray(ti.f32, shape=(n,)), "weight": ti.ndarray(ti.f32, shape=(n,)),
+               "slot_block": ti.ndarray(ti.i32, shape=(cap, 3)),
+               "rgb": ti.ndarray(ti.f32, shape=(n if self.with_color else 1, 3))}
+        used = int(self.counts[C_SLOTS])
+        for name, arr in new.items():
+            old = getattr(self, name)
+            rows = used if name == "slot_block" else used * BLOCK_VOXELS
+            if old is not None and rows and (name != "rgb" or self.with_color):
+                _copy_rows(old, arr, rows)
+            setattr(self, name, arr)
+        self.pool_blocks = cap
 
-    @ti.func
-    def _touch(self, blk, frame: ti.i32):
-        """Allocate block ``blk`` and append it to the frame's block list, once per frame."""
-        key = (blk[0] << 20) | (blk[1] << 10) | blk[2]
-        tag = (ti.cast(frame, ti.i64) << 30) | ti.cast(key, ti.i64)
-        slot = ti.cast((ti.cast(key, ti.u32) * ti.u32(2654435761)) >> ti.u32(16), ti.i32)
-        if self.cache[slot] != tag:
-            self.cache[slot] = tag
-            # atomic_max returns the previous stamp: exactly one thread sees it below `frame`.
-            if ti.atomic_max(self.block_stamp[blk], frame) < frame:
-                n = ti.atomic_add(self.n_frame_blocks[None], 1)
-                if n < self.frame_blocks_cap:
-                    self.frame_blocks[n] = blk
-
-    @ti.kernel
-    def _activate(self, depth: ti.types.ndarray(dtype=ti.f32, ndim=2), intr: ti.math.vec4,
-                  T_W_C: ti.math.mat4, stride: ti.i32, frame: ti.i32):
-        """Touch every block that a ray segment [d - tau_b, d + tau_b] of a valid pixel passes.
-        The segment is sampled every half block, so no block it crosses by more than a corner is
-        missed. The block list is unique but in thread order; the integration does not depend on
-        that order."""
-        H, W = depth.shape[0], depth.shape[1]
-        step_m = 0.5 * self.block_size_m
-        for vs, us in ti.ndrange((H + stride - 1) // stride, (W + stride - 1) // stride):
-            v, u = vs * stride, us * stride
-            d = depth[v, u]
-            if d > 0:
-                z0 = ti.max(d - self.trunc_m, 1e-3)
-                z1 = d + self.trunc_m
-                a = self._back_project(ti.f32(u), ti.f32(v), z0, intr, T_W_C)
-                b = self._back_project(ti.f32(u), ti.f32(v), z1, intr, T_W_C)
-                n = ti.cast(ti.ceil((b - a).norm() / step_m), ti.i32) + 1
-                for s in range(n + 1):
-                    x = a + (b - a) * (s / n)
-                    blk = ti.cast(ti.floor(x / self.block_size_m), ti.i32) + BLOCK_OFFSET
-                    if (blk >= 0).all() and (blk < BLOCKS_PER_AXIS).all():
-                        self._touch(blk, frame)
-                    else:
-                        ti.atomic_add(self.counters[0], 1)
-
-    @ti.kernel
-    def _integrate(self, depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
-                   rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), intr: ti.math.vec4,
-                   T_C_W: ti.math.mat4):
-        """Projective weighted-average update of every voxel of the frame's touched blocks:
-        sdf = D(u) - z_C; observed if sdf >= -tau_b; tsdf = min(1, sdf / tau_b);
-        tsdf <- (W tsdf + tsdf_new) / (W + 1), W <- min(W + 1, max_weight).
-        One thread per block, each voxel written once: deterministic."""
-        H, W = depth.shape[0], depth.shape[1]
-        R = ti.Matrix([[T_C_W[r, c] for c in range(3)] for r in range(3)])
-        t_CW = ti.Vector([T_C_W[0, 3], T_C_W[1, 3], T_C_W[2, 3]])
-        for n in range(self.n_frame_blocks[None]):
-            base = self.frame_blocks[n] * BLOCK
-            # Camera coordinates of the block's first voxel centre and the per-voxel steps.
-            x0_W = (ti.cast(base - OFFSET, ti.f32) + 0.5) * self.voxel_size
-            x0_C = R @ x0_W + t_CW
-            step = R * self.voxel_size  # column c = camera-frame step of +1 along world axis c
-            n_updated = 0
-            for t in range(BLOCK * BLOCK * BLOCK):
-                a, b, c = t // (BLOCK * BLOCK), (t // BLOCK) % BLOCK, t % BLOCK
-                x_C = x0_C + step @ ti.Vector([ti.f32(a), ti.f32(b), ti.f32(c)])
-                if x_C.z > 1e-6:
-                    inv_z = 1.0 / x_C.z
-                    u = ti.cast(ti.round(intr[0] * x_C.x * inv_z + intr[2]), ti.i32)
-                    v = ti.cast(ti.round(intr[1] * x_C.y * inv_z + intr[3]), ti.i32)
-                    if 0 <= u < W and 0 <= v < H:
-                        d = depth[v, u]
-                        sdf = d - x_C.z
-                        if d > 0 and sdf >= -self.trunc_m:
-                            I = base + ti.Vector([a, b, c])
-                            obs = ti.min(1.0, sdf / self.trunc_m)
-                            w = self.weight[I]
-                            self.tsdf[I] = (w * self.tsdf[I] + obs) / (w + 1.0)
-                            if ti.static(self.with_color):
-                                col = ti.Vector([rgb[v, u, 0], rgb[v, u, 1], rgb[v, u, 2]], ti.f32)
-                                self.rgb[I] = (w * self.rgb[I] + col) / (w + 1.0)
-                            self.weight[I] = ti.min(w + 1.0, self.max_weight)
-                            n_updated += 1
-            ti.atomic_add(self.counters[1], n_updated)
+    def _frame_params(self, K: np.ndarray, T_W_C: np.ndarray) -> np.ndarray:
+        """The per-frame parameter vector (see P_*), float64."""
+        K = np.asarray(K, np.float64)
+        T = np.asarray(T_W_C, np.float64)
+        R_WC, t_WC = T[:3, :3], T[:3, 3]
+        T_C_W = np.linalg.inv(T)  # not R^T: recorded rotations are orthonormal only to ~1e-6
+        R_CW, t_CW = T_C_W[:3, :3], T_C_W[:3, 3]
+        prm = self._params
+        prm[P_A:P_A + 9] = (K @ R_CW * self.voxel_size).ravel()
+        prm[P_C:P_C + 3] = K @ (R_CW @ np.full(3, 0.5 * self.voxel_size) + t_CW)
+        prm[P_M:P_M + 9] = (R_WC @ np.linalg.inv(K) / self.block_size_m).ravel()
+        prm[P_O:P_O + 3] = t_WC / self.block_size_m
+        prm[P_TRUNC] = self.trunc_m
+        prm[P_MAXW] = self.max_weight
+        prm[P_STEP] = 0.5
+        return prm
 
     def integrate(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
                   rgb=None, activation_stride: int = 1) -> int:
@@ -180,77 +358,78 @@ class SparseTSDF:
             depth_m: (H, W) float32 C-contiguous depth in metres, invalid pixels 0.
             K: (3, 3) pinhole intrinsics.
             T_W_C: (4, 4) camera-to-world pose.
-            rgb: optional (H, W, 3) uint8, used when the volume was built ``with_color``.
+            rgb: (H, W, 3) uint8, required when the volume was built ``with_color``.
             activation_stride: activate blocks from every n-th pixel in u and v (1 = all pixels).
         Inputs are trusted (validated by the caller).
         """
-        intr = ti.math.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-        T = np.asarray(T_W_C, dtype=np.float64)
-        T_C_W = np.linalg.inv(T)
-        before = int(self.counters[1])
-        self.frame_id += 1
-        self.n_frame_blocks[None] = 0
-        self._activate(depth_m, intr, ti.math.mat4(T.astype(np.float32)), int(activation_stride),
-                       self.frame_id)
-        n_blocks = int(self.n_frame_blocks[None])
-        if n_blocks > self.frame_blocks_cap:
-            raise MemoryError(f"a frame touched {n_blocks} blocks, more than the per-frame list "
-                              f"holds ({self.frame_blocks_cap}); use a larger voxel size")
-        rgb_arr = rgb if (self.with_color and rgb is not None) else self._no_rgb
-        self._integrate(depth_m, rgb_arr, intr, ti.math.mat4(T_C_W.astype(np.float32)))
-        return int(self.counters[1]) - before
+        if self.with_color and rgb is None:
+            raise ValueError("this volume integrates colour: pass rgb (H, W, 3) uint8")
+        prm = self._frame_params(K, T_W_C)
+        counts = self.counts
+        before = int(counts[C_UPDATES])
+        m = self._map
+        rgb_arr = rgb if self.with_color else self._no_rgb
+        while True:
+            self.frame_id += 1
+            _integrate_frame(depth_m, rgb_arr, prm, int(activation_stride), self.frame_id,
+                             self.volume_id, m.slot, m.stamp, self._cache, counts,
+                             self.frame_list, self.tsdf, self.weight, self.rgb, self.slot_block,
+                             self.with_color)
+            n_blocks, n_slots = int(counts[C_LISTED]), int(counts[C_SLOTS])
+            if n_blocks <= self.frame_list.shape[0] and n_slots <= self.pool_blocks:
+                break
+            # The kernel listed more blocks than the frame list or the pool holds and integrated
+            # nothing: grow them and list again under a new frame stamp (allocated blocks keep
+            # their slot). Happens about log2(final / initial size) times per volume.
+            if n_blocks > self.frame_list.shape[0]:
+                cap = self.frame_list.shape[0]
+                while cap < n_blocks:
+                    cap *= 2
+                self.frame_list = ti.ndarray(ti.i32, shape=(cap, 4))
+            if n_slots > self.pool_blocks:
+                self._grow_pool(n_slots)
+        return int(counts[C_UPDATES]) - before
 
-    # -- export ----------------------------------------------------------------------------
-    @ti.kernel
-    def _count_observed(self) -> ti.i32:
-        n = 0
-        for I in ti.grouped(self.weight):
-            if self.weight[I] > 0:
-                n += 1
-        return n
-
-    @ti.kernel
-    def _export(self, ijk: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                tsdf: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                weight: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                rgb: ti.types.ndarray(dtype=ti.f32, ndim=2)):
-        """Write observed voxels in arbitrary (thread-dependent) order; the caller sorts."""
-        cursor = 0
-        for I in ti.grouped(self.weight):
-            if self.weight[I] > 0:
-                n = ti.atomic_add(cursor, 1)
-                for c in ti.static(range(3)):
-                    ijk[n, c] = I[c] - OFFSET
-                tsdf[n] = self.tsdf[I] * self.trunc_m
-                weight[n] = self.weight[I]
-                if ti.static(self.with_color):
-                    for c in ti.static(range(3)):
-                        rgb[n, c] = self.rgb[I][c]
+    # -- queries ---------------------------------------------------------------------------
+    def frame_blocks(self) -> np.ndarray:
+        """Block indices (n, 3) int32 that the last :meth:`integrate` listed, sorted by (i, j, k).
+        Voxel ``ijk`` belongs to block ``ijk // 8``."""
+        n = int(self.counts[C_LISTED])
+        blk = self.frame_list.to_numpy()[:n, :3] - BLOCK_OFFSET
+        return blk[_lex_order(blk)].astype(np.int32)
 
     def export(self) -> dict:
         """All observed voxels (weight > 0), sorted by (i, j, k):
         ``ijk`` (N, 3) int32, ``tsdf`` (N,) float32 in metres (clamped to [-tau_b, tau_b]),
         ``weight`` (N,) float32, and ``rgb`` (N, 3) float32 0..255 if the volume has colour."""
-        n = int(self._count_observed())
-        ijk = np.zeros((n, 3), np.int32)
-        tsdf = np.zeros(n, np.float32)
-        weight = np.zeros(n, np.float32)
-        rgb = np.zeros((n if self.with_color else 1, 3), np.float32)
-        if n:
-            self._export(ijk, tsdf, weight, rgb)
-        order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))
-        out = {"ijk": ijk[order], "tsdf": tsdf[order], "weight": weight[order]}
+        n_slots = int(self.counts[C_SLOTS])
+        nv = n_slots * BLOCK_VOXELS
+        weight = self.weight.to_numpy()[:nv]
+        flat = np.flatnonzero(weight > 0)
+        slot, t = flat >> 9, flat & (BLOCK_VOXELS - 1)
+        ijk = (self.slot_block.to_numpy()[:n_slots].astype(np.int64)[slot] * BLOCK
+               + np.stack([t >> 6, (t >> 3) & 7, t & 7], axis=1))
+        order = _lex_order(ijk)
+        flat = flat[order]
+        out = {"ijk": ijk[order].astype(np.int32),
+               "tsdf": self.tsdf.to_numpy()[flat] * np.float32(self.trunc_m),
+               "weight": weight[flat]}
         if self.with_color:
-            out["rgb"] = rgb[order]
+            out["rgb"] = self.rgb.to_numpy()[flat]
         return out
 
-    @ti.kernel
-    def _count_blocks(self) -> ti.i32:
-        n = 0
-        for I in ti.grouped(self.block_stamp):
-            n += 1
-        return n
-
     def stats(self) -> dict:
-        """Allocated blocks, and rays (samples) that fell outside the index range."""
-        return {"blocks": int(self._count_blocks()), "out_of_range_samples": int(self.counters[0])}
+        """Allocated blocks, and activation samples that fell outside the index range."""
+        return {"blocks": int(self.counts[C_SLOTS]),
+                "out_of_range_samples": int(self.counts[C_OUT])}
+
+
+def _lex_order(ijk: np.ndarray) -> np.ndarray:
+    """Permutation sorting integer rows (N, 3) by (i, j, k) (one argsort of a linear key)."""
+    if len(ijk) == 0:
+        return np.zeros(0, np.int64)
+    ijk = ijk.astype(np.int64, copy=False)
+    lo = ijk.min(axis=0)
+    span = ijk.max(axis=0) - lo + 1
+    key = ((ijk[:, 0] - lo[0]) * span[1] + (ijk[:, 1] - lo[1])) * span[2] + (ijk[:, 2] - lo[2])
+    return np.argsort(key, kind="stable")
