@@ -207,6 +207,8 @@ class SyntheticConfig:
         _check_range("synthetic.height", self.height, 2, 16384)
         for key in ("fx", "fy"):
             _check_range(f"synthetic.{key}", getattr(self, key), 0.0, lo_open=True)
+        _check_range("synthetic.cx", self.cx, 0.0, self.width - 1)
+        _check_range("synthetic.cy", self.cy, 0.0, self.height - 1)
         _check_choice("synthetic.noise", self.noise, ("none", "gaussian", "kinect"))
         _check_range("synthetic.sigma_m", self.sigma_m, 0.0)
         _check_range("synthetic.kinect_a", self.kinect_a, 0.0)

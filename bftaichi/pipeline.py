@@ -113,14 +113,14 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     NoSurfaceError when no voxel was observed (then no mesh is written).
     """
     cfg.check()
-    out = prepare_out_dir(out_dir, overwrite=overwrite)
     timer = _Timer()
     t_start = time.perf_counter()
-    with timer("init"):
-        backend.init(cfg.run.arch)
-    with timer("load"):
+    with timer("load"):  # before touching the output folder: bad data leaves nothing behind
         frames = open_frames(cfg)
         gt = load_gt_mesh(cfg, frames)
+    out = prepare_out_dir(out_dir, overwrite=overwrite)
+    with timer("init"):
+        backend.init(cfg.run.arch)
     vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m,
                      max_weight=cfg.tsdf.max_weight, integrate_rgb=cfg.tsdf.integrate_rgb,
                      depth_max_m=cfg.scene.depth_max_m, arch=cfg.run.arch)

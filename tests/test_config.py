@@ -286,3 +286,9 @@ def test_scenes_on_shared_data_load_without_the_data(name, tmp_path):
     path = Path(cfg.scene.data if cfg.scene.source == "dataset" else cfg.synthetic.mesh)
     assert not path.exists()
     assert path.resolve().is_relative_to((tmp_path / "shared" / "data").resolve())
+
+
+def test_principal_point_outside_image_is_rejected():
+    # Shrinking the image but not the principal point would silently render empty frames.
+    with pytest.raises(ConfigError, match="synthetic.cx"):
+        load_config(None, ["synthetic.width=64", "synthetic.height=48"])
