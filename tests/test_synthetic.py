@@ -271,7 +271,8 @@ def test_write_7scenes_round_trip(tmp_path):
 def test_write_7scenes_bad_folder(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    ds = SyntheticDataset(SyntheticConfig(mesh="box", n_views=1, width=8, height=6))
+    ds = SyntheticDataset(SyntheticConfig(mesh="box", n_views=1, width=8, height=6,
+                                          cx=3.5, cy=2.5))
     with pytest.raises(BftaichiError, match=re.escape(str(blocker / "sub"))):
         write_7scenes(ds, blocker / "sub")
 

@@ -20,14 +20,19 @@ Fair comparison, same run, same preloaded frames:
 * the machine may be shared and noisy: both systems run interleaved, ``--repeats`` times each,
   and the best run of each is reported (all runs are printed too).
 
-Mesh agreement: Open3D's ``extract_triangle_mesh()`` (its default weight threshold 3) against
-``bftaichi.meshing.extract_mesh`` on our export with the same threshold (weight >= 3, so both
-meshes cover the same voxels; ``--min-weight`` changes it). Chamfer distance = mean d^2 both ways
-(m^2) between ``--mesh-samples`` area-weighted surface samples of each mesh (fixed seed).
+Mesh agreement (needs Open3D): ``bftaichi.meshing.extract_mesh`` on our export over cells whose
+corners have weight >= ``--weight-ours`` (1) against Open3D's ``extract_triangle_mesh()`` with
+its default weight threshold (``--weight-o3d``, 3); a second line compares both at the same
+threshold, so that both meshes cover the same voxels. Chamfer distance = mean d^2 both ways
+(m^2), d = distance from each of ``--mesh-samples`` area-weighted trimesh samples of one mesh to
+the other mesh's surface (exact point-to-triangle, Open3D RaycastingScene). The
+sample-to-nearest-sample version (scipy cKDTree) is printed too; it adds the sample spacing to
+every distance.
 
-JIT overhead: the bftaichi part runs twice more in a subprocess with a fresh, empty Taichi
-offline cache (``TI_OFFLINE_CACHE_FILE_PATH``): *cold* = the first frame's extra time when every
-kernel is compiled, *warm* = the same with the cache the cold run filled.
+JIT overhead: the bftaichi part (4 frames and 2 exports) runs twice more in subprocesses that
+share a fresh, empty Taichi offline cache (``TI_OFFLINE_CACHE_FILE_PATH``): *cold* = the extra
+time of the first integrate and the first export when every kernel is compiled, *warm* = the
+same with the cache the cold run filled (Taichi still parses the kernels to find them there).
 """
 
 from __future__ import annotations
@@ -123,38 +128,61 @@ class Open3DRunner:
 
 # -- mesh agreement --------------------------------------------------------------------------
 
+def surface_distances(points: np.ndarray, mesh) -> np.ndarray:
+    """Exact distance (m) from each point (N, 3) to the triangle mesh ``mesh`` (trimesh), by
+    Open3D's RaycastingScene (point-to-triangle, not point-to-sample)."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3c.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3c.Tensor(np.asarray(mesh.faces, np.uint32)))
+    return scene.compute_distance(o3c.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
+
+
 def chamfer(mesh_a, mesh_b, n_samples: int, seed: int = 0) -> dict:
-    """Symmetric Chamfer distance between two trimesh meshes: mean squared nearest-neighbour
-    distance of ``n_samples`` area-weighted surface samples, both ways (m^2), and the mean
-    (unsquared) distances."""
+    """Symmetric Chamfer distance (m^2) between two trimesh meshes: ``n_samples`` area-weighted
+    surface samples of each (trimesh, fixed seeds), mean squared distance to the other mesh,
+    summed over both directions.
+
+    ``chamfer_m2`` measures the distance from each sample to the other *surface* (exact);
+    ``chamfer_samples_m2`` to the other mesh's nearest *sample* (scipy cKDTree), which adds the
+    sample spacing (~sqrt(area / n_samples)) to every distance and so overstates the gap."""
     import trimesh
     from scipy.spatial import cKDTree
 
     pa, _ = trimesh.sample.sample_surface(mesh_a, n_samples, seed=seed)
     pb, _ = trimesh.sample.sample_surface(mesh_b, n_samples, seed=seed + 1)
-    d_ab, _ = cKDTree(pb).query(pa, workers=-1)
-    d_ba, _ = cKDTree(pa).query(pb, workers=-1)
+    d_ab, d_ba = surface_distances(pa, mesh_b), surface_distances(pb, mesh_a)
+    s_ab, _ = cKDTree(pb).query(pa, workers=-1)
+    s_ba, _ = cKDTree(pa).query(pb, workers=-1)
     return {"chamfer_m2": float(np.mean(d_ab ** 2) + np.mean(d_ba ** 2)),
-            "mean_dist_ours_to_o3d_m": float(d_ab.mean()),
-            "mean_dist_o3d_to_ours_m": float(d_ba.mean())}
+            "chamfer_samples_m2": float(np.mean(s_ab ** 2) + np.mean(s_ba ** 2)),
+            "median_dist_ours_to_o3d_m": float(np.median(d_ab)),
+            "median_dist_o3d_to_ours_m": float(np.median(d_ba)),
+            "p99_dist_ours_to_o3d_m": float(np.percentile(d_ab, 99)),
+            "p99_dist_o3d_to_ours_m": float(np.percentile(d_ba, 99))}
 
 
-def mesh_agreement(vol, vbg, voxel, min_weight, n_samples) -> dict:
+def mesh_agreement(vol, vbg, voxel, w_ours, w_o3d, n_samples) -> dict:
+    """Compare ``bftaichi.meshing.extract_mesh`` on our export (cells whose 8 corners have
+    weight >= ``w_ours``) with Open3D's ``extract_triangle_mesh(weight_threshold=w_o3d)``."""
     import trimesh
     from bftaichi.meshing import extract_mesh
 
-    t0 = time.perf_counter()
     ex = vol.export()
-    v, f = extract_mesh(ex["ijk"], ex["tsdf"], ex["weight"] >= min_weight, voxel)
+    t0 = time.perf_counter()
+    v, f = extract_mesh(ex["ijk"], ex["tsdf"], ex["weight"] >= w_ours, voxel)
     t_ours = time.perf_counter() - t0
     t0 = time.perf_counter()
-    m = vbg.extract_triangle_mesh(weight_threshold=min_weight)
+    m = vbg.extract_triangle_mesh(weight_threshold=w_o3d)
     t_o3d = time.perf_counter() - t0
     ours = trimesh.Trimesh(v, f, process=False)
     theirs = trimesh.Trimesh(m.vertex.positions.numpy(), m.triangle.indices.numpy(),
                              process=False)
     out = chamfer(ours, theirs, n_samples)
-    out.update(voxel_m=voxel, min_weight=min_weight, chamfer_over_voxel2=out["chamfer_m2"] / voxel ** 2,
+    out.update(voxel_m=voxel, weight_ours=w_ours, weight_o3d=w_o3d,
+               chamfer_over_voxel2=out["chamfer_m2"] / voxel ** 2,
                faces_ours=int(len(f)), faces_o3d=int(len(theirs.faces)),
                area_ours_m2=float(ours.area), area_o3d_m2=float(theirs.area),
                extract_s_ours=t_ours, extract_s_o3d=t_o3d)
@@ -164,10 +192,10 @@ def mesh_agreement(vol, vbg, voxel, min_weight, n_samples) -> dict:
 # -- JIT overhead (subprocess) ---------------------------------------------------------------
 
 def jit_child(args) -> int:
-    """Run in a subprocess: time Taichi start-up and the first frames; print one JSON line."""
-    t0 = time.perf_counter()
-    K, _, depths, poses = load_frames(Path(args.data), 3, args.depth_max)
-    t_load = time.perf_counter() - t0
+    """Run in a subprocess: time Taichi start-up, the first frames and two exports; print one
+    JSON line. The first integrate and the first export include compiling (or loading from the
+    offline cache) their kernels; the later ones are the steady-state reference."""
+    K, _, depths, poses = load_frames(Path(args.data), 4, args.depth_max)
     t0 = time.perf_counter()
     from bftaichi.backend import init
     import kernels.tsdf  # noqa: F401
@@ -179,14 +207,17 @@ def jit_child(args) -> int:
 
     voxel = args.voxels[0]
     vol = SparseTSDF(voxel, args.trunc_voxels * voxel)
-    times = []
-    for depth, T in zip(depths, poses):
+    frame_s, export_s = [], []
+    for i, (depth, T) in enumerate(zip(depths, poses)):
         t0 = time.perf_counter()
         vol.integrate(depth, K, T, activation_stride=args.stride)
-        vol.export() if len(times) == 0 else None  # the export path is compiled once too
-        times.append(time.perf_counter() - t0)
-    print(json.dumps({"load_s": t_load, "import_s": t_import, "init_s": t_init,
-                      "frame_s": times}))
+        frame_s.append(time.perf_counter() - t0)
+        if i in (0, len(depths) - 1):
+            t0 = time.perf_counter()
+            vol.export()
+            export_s.append(time.perf_counter() - t0)
+    print(json.dumps({"import_s": t_import, "init_s": t_init, "frame_s": frame_s,
+                      "export_s": export_s}))
     return 0
 
 
@@ -208,7 +239,9 @@ def jit_overhead(args) -> dict:
             steady = float(np.median(r["frame_s"][1:]))
             out[label] = {"process_wall_s": wall, "import_s": r["import_s"], "init_s": r["init_s"],
                           "first_frame_s": r["frame_s"][0], "steady_frame_s": steady,
-                          "overhead_s": r["frame_s"][0] - steady}
+                          "first_export_s": r["export_s"][0], "steady_export_s": r["export_s"][1],
+                          "overhead_s": (r["frame_s"][0] - steady
+                                         + r["export_s"][0] - r["export_s"][1])}
     finally:
         shutil.rmtree(cache, ignore_errors=True)
     return out
@@ -216,7 +249,7 @@ def jit_overhead(args) -> dict:
 
 # -- main ------------------------------------------------------------------------------------
 
-def main(argv=None) -> int:
+def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="7-Scenes sequence folder")
@@ -228,8 +261,10 @@ def main(argv=None) -> int:
     ap.add_argument("--depth-max", type=float, default=6.0, help="metres (both systems)")
     ap.add_argument("--stride", type=int, default=4,
                     help="activation pixel stride (Open3D's is fixed at 4)")
-    ap.add_argument("--min-weight", type=float, default=3.0,
-                    help="mesh weight threshold for both (Open3D's default is 3)")
+    ap.add_argument("--weight-ours", type=float, default=1.0,
+                    help="our mesh: cells whose 8 corners have weight >= this (default 1)")
+    ap.add_argument("--weight-o3d", type=float, default=3.0,
+                    help="Open3D's extract_triangle_mesh weight_threshold (its default 3)")
     ap.add_argument("--mesh-samples", type=int, default=200_000)
     ap.add_argument("--no-open3d", action="store_true", help="skip Open3D even if installed")
     ap.add_argument("--no-mesh", action="store_true", help="skip the mesh comparison")
@@ -237,6 +272,15 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, help="also write all numbers to this JSON file")
     ap.add_argument("--jit-child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.frames < 3 or args.repeats < 1 or args.stride < 1 or args.mesh_samples < 1000:
+        ap.error("need --frames >= 3, --repeats >= 1, --stride >= 1, --mesh-samples >= 1000")
+    if any(not (0.001 <= v <= 0.5) for v in args.voxels):
+        ap.error("--voxels must be in [0.001, 0.5] m")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     if args.jit_child:
         return jit_child(args)
     if not (args.data / "camera-intrinsics.txt").is_file():
@@ -250,16 +294,15 @@ def main(argv=None) -> int:
           f"loaded in {time.perf_counter() - t0:.1f} s")
 
     o3d_runner = None
-    o3d_note = ""
-    if not args.no_open3d:
+    if args.no_open3d:
+        o3d_note = "Open3D skipped (--no-open3d): bftaichi numbers only"
+    else:
         try:
             import open3d
             o3d_runner = Open3DRunner(raws, K, poses)
-            o3d_note = f"Open3D {open3d.__version__}"
+            o3d_note = f"Open3D {open3d.__version__} (tensor VoxelBlockGrid, CPU:0)"
         except ImportError:
             o3d_note = "Open3D is not installed: bftaichi numbers only (pip install open3d)"
-    else:
-        o3d_note = "Open3D skipped (--no-open3d)"
     print(o3d_note)
 
     import taichi as ti
@@ -274,99 +317,120 @@ def main(argv=None) -> int:
     for depth, T in zip(depths[:2], poses[:2]):
         warm.integrate(depth, K, T, activation_stride=args.stride)
     warm.export()
+    del warm
     print(f"Taichi warm-up (compile or offline-cache load): {time.perf_counter() - t0:.2f} s; "
-          f"threads: {ti.lang.impl.current_cfg().cpu_max_num_threads}")
+          f"CPU threads: {ti.lang.impl.current_cfg().cpu_max_num_threads}")
 
-    results = {v: {"ours_s": [], "o3d_s": []} for v in args.voxels}
+    runs = {v: {"ours_s": [], "o3d_s": []} for v in args.voxels}
     last = {}
     for rep in range(args.repeats):
         for voxel in args.voxels:
-            trunc = args.trunc_voxels * voxel
-            r = results[voxel]
-            sec, vol, updates = run_bftaichi(depths, K, poses, voxel, trunc, args.stride)
+            r = runs[voxel]
+            sec, vol, updates = run_bftaichi(depths, K, poses, voxel, args.trunc_voxels * voxel,
+                                             args.stride)
             r["ours_s"].append(sec)
             r["updates_per_frame"] = updates / n
             r["blocks_ours"] = vol.stats()["blocks"]
-            line = f"  run {rep + 1}/{args.repeats} voxel {voxel * 100:g} cm: bftaichi {n / sec:7.1f} fps"
+            line = (f"  run {rep + 1}/{args.repeats}  {voxel * 100:g} cm:  bftaichi "
+                    f"{n / sec:6.1f} frames/s")
             vbg = None
             if o3d_runner is not None:
                 block_count = max(50_000, 2 * r["blocks_ours"])
                 sec_o, vbg = o3d_runner.run(voxel, args.trunc_voxels, args.depth_max, block_count)
                 r["o3d_s"].append(sec_o)
                 r["blocks_o3d"] = int(vbg.hashmap().size())
-                line += f"   Open3D {n / sec_o:7.1f} fps"
+                line += f"   Open3D {n / sec_o:6.1f} frames/s"
             print(line, flush=True)
-            if rep == args.repeats - 1:
-                last[voxel] = (vol, vbg)
-            else:
-                del vol, vbg
+            last[voxel] = (vol, vbg)
+            del vol, vbg
 
     report = {"frames": n, "repeats": args.repeats, "trunc_voxels": args.trunc_voxels,
               "depth_max_m": args.depth_max, "activation_stride": args.stride,
               "open3d": o3d_note, "voxels": {}}
     for voxel in args.voxels:
-        r = results[voxel]
-        entry = {"fps_ours_best": n / min(r["ours_s"]), "fps_ours_all": [n / s for s in r["ours_s"]],
-                 "blocks_ours": r["blocks_ours"], "updates_per_frame": r["updates_per_frame"]}
+        r = runs[voxel]
+        e = {"fps_ours_best": n / min(r["ours_s"]), "fps_ours_all": [n / s for s in r["ours_s"]],
+             "blocks_ours": r["blocks_ours"], "updates_per_frame": r["updates_per_frame"]}
         if r["o3d_s"]:
-            entry.update(fps_o3d_best=n / min(r["o3d_s"]), fps_o3d_all=[n / s for s in r["o3d_s"]],
-                         blocks_o3d=r["blocks_o3d"],
-                         ratio_best=min(r["o3d_s"]) / min(r["ours_s"]))
-        report["voxels"][str(voxel)] = entry
+            e.update(fps_o3d_best=n / min(r["o3d_s"]), fps_o3d_all=[n / s for s in r["o3d_s"]],
+                     blocks_o3d=r["blocks_o3d"], ratio_best=min(r["o3d_s"]) / min(r["ours_s"]))
+        report["voxels"][str(voxel)] = e
 
     if not args.no_mesh and o3d_runner is not None:
         print("mesh agreement ...", flush=True)
         for voxel in args.voxels:
             vol, vbg = last[voxel]
-            report["voxels"][str(voxel)]["mesh"] = mesh_agreement(
-                vol, vbg, voxel, args.min_weight, args.mesh_samples)
+            e = report["voxels"][str(voxel)]
+            e["mesh"] = mesh_agreement(vol, vbg, voxel, args.weight_ours, args.weight_o3d,
+                                       args.mesh_samples)
+            if args.weight_ours != args.weight_o3d:
+                e["mesh_same_weight"] = mesh_agreement(vol, vbg, voxel, args.weight_o3d,
+                                                       args.weight_o3d, args.mesh_samples)
     last.clear()
 
     if not args.no_jit:
-        print("JIT overhead (subprocesses with an empty Taichi offline cache) ...", flush=True)
+        print("JIT overhead (2 subprocesses sharing a new, empty Taichi offline cache) ...",
+              flush=True)
         report["jit"] = jit_overhead(args)
 
-    # -- table -----------------------------------------------------------------------------
-    print()
-    print(f"TSDF integration, {n} frames of 7-Scenes redkitchen, trunc {args.trunc_voxels:g} voxels, "
-          f"depth_max {args.depth_max:g} m, activation stride {args.stride}, best of {args.repeats}")
-    head = f"{'voxel':>6} | {'bftaichi fps':>12} | {'Open3D fps':>10} | {'ratio':>5} | " \
-           f"{'blocks ours/O3D':>15} | {'upd/frame':>9} | {'Chamfer m^2':>11} | {'CD/voxel^2':>10}"
-    print(head)
-    print("-" * len(head))
-    for voxel in args.voxels:
-        e = report["voxels"][str(voxel)]
-        o3d_fps = f"{e['fps_o3d_best']:10.1f}" if "fps_o3d_best" in e else f"{'-':>10}"
-        ratio = f"{e['ratio_best']:5.2f}" if "ratio_best" in e else f"{'-':>5}"
-        blocks = f"{e['blocks_ours']}/{e.get('blocks_o3d', '-')}"
-        cd = f"{e['mesh']['chamfer_m2']:11.3e}" if "mesh" in e else f"{'-':>11}"
-        cdv = f"{e['mesh']['chamfer_over_voxel2']:10.3f}" if "mesh" in e else f"{'-':>10}"
-        print(f"{voxel * 100:4g}cm | {e['fps_ours_best']:12.1f} | {o3d_fps} | {ratio} | "
-              f"{blocks:>15} | {e['updates_per_frame']:9.0f} | {cd} | {cdv}")
-    print("(ratio = bftaichi fps / Open3D fps; all runs: "
-          + "; ".join(f"{v * 100:g} cm ours " + ", ".join(f"{x:.0f}" for x in report["voxels"][str(v)]["fps_ours_all"])
-                      + (" / O3D " + ", ".join(f"{x:.0f}" for x in report["voxels"][str(v)]["fps_o3d_all"])
-                         if "fps_o3d_all" in report["voxels"][str(v)] else "")
-                      for v in args.voxels) + ")")
-    for voxel in args.voxels:
-        m = report["voxels"][str(voxel)].get("mesh")
-        if m:
-            print(f"mesh {voxel * 100:g} cm (weight >= {m['min_weight']:g}): faces ours {m['faces_ours']} / "
-                  f"O3D {m['faces_o3d']}, area {m['area_ours_m2']:.2f} / {m['area_o3d_m2']:.2f} m^2, "
-                  f"mean dist ours->O3D {m['mean_dist_ours_to_o3d_m'] * 1000:.2f} mm, "
-                  f"O3D->ours {m['mean_dist_o3d_to_ours_m'] * 1000:.2f} mm")
-    if "jit" in report:
-        for label in ("cold", "warm"):
-            j = report["jit"][label]
-            print(f"Taichi {label:4s} ({'empty' if label == 'cold' else 'filled'} offline cache): "
-                  f"first-frame overhead {j['overhead_s']:.2f} s (first {j['first_frame_s']:.2f} s, "
-                  f"steady {j['steady_frame_s'] * 1000:.1f} ms), ti.init {j['init_s']:.2f} s, "
-                  f"process {j['process_wall_s']:.1f} s")
+    print_report(report, args)
     print(f"bench wall time: {time.perf_counter() - t_start:.0f} s")
     if args.json:
         args.json.write_text(json.dumps(report, indent=2))
         print(f"wrote {args.json}")
     return 0
+
+
+def print_report(report: dict, args) -> None:
+    n = report["frames"]
+    print()
+    print(f"TSDF integration, {n} frames of 7-Scenes redkitchen (640x480), trunc "
+          f"{args.trunc_voxels:g} voxels, depth_max {args.depth_max:g} m, activation stride "
+          f"{args.stride}, best of {args.repeats} runs; {report['open3d']}")
+    head = (f"{'voxel':>5} | {'bftaichi frames/s':>17} | {'Open3D frames/s':>15} | {'ratio':>5} | "
+            f"{'blocks ours/O3D':>15} | {'updates/frame':>13} | {'CD m^2':>9} | "
+            f"{'CD/voxel^2':>10} | {'same-weight CD/voxel^2':>22}")
+    print(head)
+    print("-" * len(head))
+    for voxel in args.voxels:
+        e = report["voxels"][str(voxel)]
+        cell = lambda key, fmt, w: format(e[key], fmt) if key in e else f"{'-':>{w}}"  # noqa: E731
+        m, m2 = e.get("mesh"), e.get("mesh_same_weight", e.get("mesh"))
+        print(f"{voxel * 100:3g}cm | {e['fps_ours_best']:17.1f} | {cell('fps_o3d_best', '15.1f', 15)}"
+              f" | {cell('ratio_best', '5.2f', 5)} | "
+              f"{str(e['blocks_ours']) + '/' + str(e.get('blocks_o3d', '-')):>15} | "
+              f"{e['updates_per_frame']:13.0f} | "
+              + (f"{m['chamfer_m2']:9.2e} | {m['chamfer_over_voxel2']:10.3f} | "
+                 f"{m2['chamfer_over_voxel2']:22.3f}" if m else f"{'-':>9} | {'-':>10} | {'-':>22}"))
+    print("ratio = bftaichi frames/s / Open3D frames/s (best runs). All runs (frames/s):")
+    for voxel in args.voxels:
+        e = report["voxels"][str(voxel)]
+        line = f"  {voxel * 100:g} cm: bftaichi " + ", ".join(f"{x:.1f}" for x in e["fps_ours_all"])
+        if "fps_o3d_all" in e:
+            line += "; Open3D " + ", ".join(f"{x:.1f}" for x in e["fps_o3d_all"])
+        print(line)
+    for voxel in args.voxels:
+        e = report["voxels"][str(voxel)]
+        for key in ("mesh", "mesh_same_weight"):
+            m = e.get(key)
+            if m:
+                print(f"mesh {voxel * 100:g} cm, ours weight >= {m['weight_ours']:g} vs Open3D "
+                      f"weight_threshold {m['weight_o3d']:g}: faces {m['faces_ours']} / "
+                      f"{m['faces_o3d']}, area {m['area_ours_m2']:.2f} / {m['area_o3d_m2']:.2f} m^2, "
+                      f"distance ours->O3D median {m['median_dist_ours_to_o3d_m'] * 1e3:.2f} mm "
+                      f"(p99 {m['p99_dist_ours_to_o3d_m'] * 1e3:.1f}), O3D->ours median "
+                      f"{m['median_dist_o3d_to_ours_m'] * 1e3:.2f} mm "
+                      f"(p99 {m['p99_dist_o3d_to_ours_m'] * 1e3:.1f}); CD {m['chamfer_m2']:.2e} m^2 "
+                      f"(sample-to-sample cKDTree: {m['chamfer_samples_m2']:.2e})")
+    if "jit" in report:
+        for label in ("cold", "warm"):
+            j = report["jit"][label]
+            print(f"Taichi {label} ({'empty' if label == 'cold' else 'filled'} offline cache): "
+                  f"JIT overhead {j['overhead_s']:.2f} s = first frame {j['first_frame_s']:.2f} s "
+                  f"(then {j['steady_frame_s'] * 1e3:.1f} ms) + first export "
+                  f"{j['first_export_s']:.2f} s (then {j['steady_export_s'] * 1e3:.1f} ms); "
+                  f"ti.init {j['init_s']:.2f} s, import {j['import_s']:.2f} s, whole process "
+                  f"{j['process_wall_s']:.1f} s")
 
 
 if __name__ == "__main__":
