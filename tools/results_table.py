@@ -64,7 +64,7 @@ def main(argv=None) -> int:
         if m:
             cells += [f"{m['chamfer_l2']:.3g}", f"{m['accuracy_m'] * 1000:.2f}",
                       f"{m['completeness_m'] * 1000:.2f}"]
-            cells += [f"{m.get(f'fscore@{t}', float('nan')):.3f}" for t in thresholds]
+            cells += [f"{m[f'fscore@{t}']:.3f}" if f"fscore@{t}" in m else "-" for t in thresholds]
         else:
             cells += ["-"] * (3 + len(thresholds))
         print("| " + " | ".join(cells) + " |")
