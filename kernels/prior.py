@@ -1,0 +1,177 @@
+"""GMRF membrane prior of BayesFusion-SDF (DESIGN.md 3.4), added into the 27-point stencil.
+
+The prior over the band values x (metres) is ``p(x) ∝ exp(-1/2 x^T Q0 x + b0^T x)``, i.e.
+
+    -2 log p(x) = lam * sum_{(i,j) in E} w_ij (x_i - x_j)^2
+                + sum_{i in anchors} a_i (x_i - tsdf_i)^2 + eps |x|^2 + const
+
+* E: pairs of band voxels that are neighbours in the chosen stencil (6, 18 or 26 neighbours,
+  :func:`kernels.band.stencil_offsets`), each undirected edge once, ``w_ij = 1 / |offset|^2``
+  (offset in voxels: 1, 1/2, 1/3 for face, edge, corner neighbours);
+* anchors (the paper's ablation, ``anchors=``):
+
+  - ``"boundary"``: the band boundary, voxels with at least one stencil neighbour missing from
+    the band (the paper), ``a_i = lam_b``;
+  - ``"all"``: every observed voxel, ``a_i = lam_b * weight_i / max(weight)`` (a voxel seen as
+    often as the best-seen one is pulled as hard as a boundary anchor, a rarely seen one less);
+  - ``"none"``: no anchors; the membrane alone is singular (its null space is the constant
+    vector), so ``eps > 0`` or the data term must make Q positive definite.
+
+In stencil form (layout in kernels/band.py): ``Q0_ij = -lam w_ij`` at offset o of row i,
+``Q0_ii = lam * sum_j w_ij + a_i + eps``, and the anchor part of the right-hand side
+``b0_i = a_i tsdf_i``. Since ``w`` of offset o equals that of ``26 - o``, adding Q0 keeps a
+symmetric stencil exactly symmetric (the same float32 number is subtracted on both sides).
+"""
+
+import numpy as np
+import taichi as ti
+
+from .band import CENTRE, stencil_offsets
+
+DEFAULT_STENCIL = 6
+"""Membrane stencil by default: 6 face neighbours (the paper leaves 6/18/26 open). Not measured:
+the prior's assembly is cheapest with 6, but Q x runs over the full 27-point stencil that the
+data term fills whatever this is, so speed hardly depends on it; 18 and 26 smooth more
+isotropically. The ablation (tools/) should decide."""
+
+ANCHOR_MODES = ("none", "boundary", "all")
+DEFAULT_ANCHORS = "boundary"
+"""Anchor set by default: the band boundary, as in the paper (its full model, Table 2)."""
+
+_NONE, _BOUNDARY, _ALL = 0, 1, 2  # anchor mode codes passed to the kernel
+_MODE_CODE = {"none": _NONE, "boundary": _BOUNDARY, "all": _ALL}
+
+
+def prior_weights(stencil: int) -> np.ndarray:
+    """(27,) float64 membrane weight per stencil offset: ``1 / |offset|^2`` for the offsets of the
+    ``stencil`` (6, 18 or 26), 0 for the others and for the centre."""
+    offsets, weights = stencil_offsets(stencil)
+    w = np.zeros(27, np.float64)
+    w[offsets] = weights
+    return w
+
+
+@ti.kernel
+def _add_membrane_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                        b0: ti.types.ndarray(ndim=1),
+                        nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                        tsdf: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                        weight: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                        w27: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                        lam: ti.f64, lam_b: ti.f64, eps: ti.f64, mode: ti.i32,
+                        inv_max_weight: ti.f64, b0_dtype: ti.template()):
+    """Row i of Q0 into S (added) and b0 (written), for every band voxel i: off-diagonals
+    ``S[i, o] -= float32(lam w_o)`` where the neighbour exists; the diagonal sum
+    ``lam sum_o w_o + a_i + eps`` accumulated in float64 and added once; ``b0_i = a_i tsdf_i``.
+    Deterministic: each row is written by its own thread (gather, no atomics)."""
+    for i in range(nbr.shape[0]):
+        diag = eps
+        boundary = False
+        for o in ti.static(range(27)):
+            if ti.static(o != CENTRE):
+                if w27[o] > 0:
+                    c = lam * w27[o]  # lam w_ij, the same number for o and 26 - o
+                    if nbr[i, o] >= 0:
+                        S[i, o] = S[i, o] - ti.cast(c, ti.f32)  # not -=: that is an atomic
+                        diag += c
+                    else:
+                        boundary = True
+        anchor = ti.f64(0.0)
+        if mode == _BOUNDARY and boundary:
+            anchor = lam_b
+        elif mode == _ALL:
+            anchor = lam_b * ti.cast(weight[i], ti.f64) * inv_max_weight
+        S[i, CENTRE] = ti.cast(ti.cast(S[i, CENTRE], ti.f64) + diag + anchor, ti.f32)
+        b0[i] = ti.cast(anchor * ti.cast(tsdf[i], ti.f64), b0_dtype)
+
+
+def _shape_of(arr, name: str) -> tuple:
+    if not hasattr(arr, "shape"):
+        raise ValueError(f"prior argument {name} must be a numpy array or Taichi ndarray, "
+                         f"got {type(arr).__name__}")
+    return tuple(arr.shape)
+
+
+_TI_DTYPES = {np.dtype(np.float32): ti.f32, np.dtype(np.float64): ti.f64,
+              np.dtype(np.int32): ti.i32}
+
+
+def _check_dtype(arr, name: str, allowed: tuple) -> None:
+    """The dtype of ``arr`` (numpy array or Taichi ndarray) is one of the ``allowed`` numpy
+    dtypes; numpy arrays must also be C-contiguous (the kernel writes in place)."""
+    allowed = tuple(np.dtype(a) for a in allowed)
+    if isinstance(arr, np.ndarray):
+        ok = arr.dtype in allowed
+        if ok and not arr.flags.c_contiguous:
+            raise ValueError(f"prior argument {name} must be C-contiguous")
+    else:
+        ok = getattr(arr, "dtype", None) in [_TI_DTYPES[a] for a in allowed]
+    if not ok:
+        raise ValueError(f"prior argument {name} must have dtype "
+                         f"{' or '.join(str(a) for a in allowed)}, got {arr.dtype}")
+
+
+def _rhs_dtype(b0):
+    """Taichi dtype of the right-hand side array (float32 or float64)."""
+    if isinstance(b0, np.ndarray):
+        return ti.f64 if b0.dtype == np.float64 else ti.f32
+    return b0.dtype
+
+
+def _to_numpy(arr) -> np.ndarray:
+    return arr.to_numpy() if hasattr(arr, "to_numpy") else np.asarray(arr)
+
+
+def add_prior(S, b0, nbr, tsdf, weight, *, lam: float, lam_b: float, eps: float,
+              stencil: int = DEFAULT_STENCIL, anchors: str = DEFAULT_ANCHORS) -> None:
+    """Add the membrane prior Q0 into the stencil ``S`` and write its right-hand side ``b0``.
+
+    Args:
+        S: (N, 27) float32 stencil of Q, modified in place (``S += Q0``); symmetric in,
+            symmetric out.
+        b0: (N,) float32 or float64, overwritten with the anchor term ``a_i tsdf_i``
+            (1/m units times metres; add it to ``A^T W y`` to get h).
+        nbr: (N, 27) int32 neighbour table of the band (kernels/band.py).
+        tsdf: (N,) float32 bootstrap values, metres (the anchors' targets).
+        weight: (N,) float32 bootstrap weights (used by ``anchors="all"``).
+        lam: membrane strength lambda >= 0, 1/m^2 like Q (no default: chosen by the caller).
+        lam_b: anchor strength lambda_b >= 0, 1/m^2.
+        eps: added to every diagonal entry, >= 0, 1/m^2.
+        stencil: 6, 18 or 26 neighbours (see ``DEFAULT_STENCIL``).
+        anchors: ``"boundary"``, ``"all"`` or ``"none"`` (module docstring).
+    S, b0, nbr, tsdf, weight are numpy arrays or Taichi ndarrays (any N, no recompilation).
+
+    Raises:
+        ValueError: bad stencil, anchor mode, parameters, shapes or dtypes.
+
+    Deterministic (one thread per row, no atomics).
+    """
+    if anchors not in ANCHOR_MODES:
+        raise ValueError(f"prior anchors must be one of {', '.join(ANCHOR_MODES)}, "
+                         f"got {anchors!r}")
+    w27 = prior_weights(stencil)
+    for name, value in (("lam", lam), ("lam_b", lam_b), ("eps", eps)):
+        if not (isinstance(value, (int, float, np.floating, np.integer))
+                and np.isfinite(value) and value >= 0):
+            raise ValueError(f"prior {name} must be a finite number >= 0, got {value!r}")
+    n = _shape_of(nbr, "nbr")[0] if len(_shape_of(nbr, "nbr")) == 2 else -1
+    expected = {"S": (n, 27), "b0": (n,), "nbr": (n, 27), "tsdf": (n,), "weight": (n,)}
+    arrays = {"S": S, "b0": b0, "nbr": nbr, "tsdf": tsdf, "weight": weight}
+    for name, arr in arrays.items():
+        if _shape_of(arr, name) != expected[name]:
+            raise ValueError(f"prior argument {name} must have shape (N, 27) / (N,) with N = "
+                             f"{n} band voxels: expected {expected[name]}, got "
+                             f"{_shape_of(arr, name)}")
+    _check_dtype(S, "S", (np.float32,))
+    _check_dtype(b0, "b0", (np.float32, np.float64))
+    _check_dtype(nbr, "nbr", (np.int32,))
+    _check_dtype(tsdf, "tsdf", (np.float32,))
+    _check_dtype(weight, "weight", (np.float32,))
+    if n == 0:
+        return
+    inv_max_weight = 0.0
+    if anchors == "all":
+        max_weight = float(_to_numpy(weight).max())
+        inv_max_weight = 1.0 / max_weight if max_weight > 0 else 0.0
+    _add_membrane_prior(S, b0, nbr, tsdf, weight, w27, float(lam), float(lam_b), float(eps),
+                        _MODE_CODE[anchors], inv_max_weight, _rhs_dtype(b0))

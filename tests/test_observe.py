@@ -1,0 +1,319 @@
+"""kernels.observe: the data term of the posterior against independent numpy/scipy references.
+
+Small bands (voxel shells around a sphere and a box, 3 cm voxels) and tiny noiseless synthetic
+frames (40x30 px). The references rebuild what DESIGN.md section 3 (steps 3-4) specifies from the
+raw observation rows (``Observer.frame_rows``) or from the scene geometry: A^T W A and A^T W y as
+scipy CSR products, the sample points from the pixel rays, the signed distance to the true box
+face, the noise model from the true face normal, the accepted/dropped split from a dense
+occupancy grid.
+"""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from bftaichi.config import SyntheticConfig
+from bftaichi.synthetic import SyntheticDataset
+from kernels.lookup import build_block_table
+from kernels.observe import Observer, stencil_offset
+
+VOXEL = 0.03
+TRUNC = 2 * VOXEL
+R_OBJ = 0.3  # sphere radius / box half extent, metres
+NOISE = dict(depth_a_m=0.0012, depth_b=0.0019, depth_z0_m=0.4, cos_min=0.5, sigma_pose_m=0.002,
+             sigma_model_m=0.001)
+OFFSETS = np.array([stencil_offset(o) for o in range(27)])
+
+
+def frames_of(mesh: str):
+    cfg = SyntheticConfig(mesh=mesh, radius_m=R_OBJ, width=40, height=30, fx=50.0, fy=50.0,
+                          cx=19.5, cy=14.5, noise="none", quantization_m=0.0, n_views=3,
+                          trajectory="ring", cam_radius_m=1.2, cam_height_m=0.7)
+    return list(SyntheticDataset(cfg))
+
+
+def shell(sdf, half_width_vox: float) -> np.ndarray:
+    """Voxels (lexicographic ijk, int32) whose centre has |sdf| < half_width_vox voxels."""
+    r = np.arange(-16, 16)
+    ijk = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    return ijk[np.abs(sdf((ijk + 0.5) * VOXEL)) < half_width_vox * VOXEL].astype(np.int32)
+
+
+def sphere_sdf(x):
+    return np.linalg.norm(x, axis=-1) - R_OBJ
+
+
+def box_sdf(x):
+    q = np.abs(x) - R_OBJ
+    return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(axis=-1), 0)
+
+
+class Band:
+    """A band, its lookup, a dense occupancy grid and the numpy-built 27-neighbour table."""
+
+    def __init__(self, ijk):
+        self.ijk = ijk
+        self.keys, self.table = build_block_table(ijk)
+        self.lo = ijk.min(axis=0) - 2
+        shape = ijk.max(axis=0) - self.lo + 3
+        self.grid = np.full(shape, -1, np.int64)
+        self.grid[tuple((ijk - self.lo).T)] = np.arange(len(ijk))
+        self.nbr = self.index_of(ijk[:, None, :] + OFFSETS[None])  # (N, 27)
+
+    def index_of(self, ijk):
+        g = np.asarray(ijk) - self.lo
+        inside = ((g >= 0) & (g < self.grid.shape)).all(axis=-1)
+        out = np.full(g.shape[:-1], -1, np.int64)
+        out[inside] = self.grid[tuple(g[inside].T)]
+        return out
+
+    def observer(self, **kw):
+        return Observer(self.keys, self.table, len(self.ijk), VOXEL, TRUNC, **{**NOISE, **kw})
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return Band(shell(sphere_sdf, 2.5)), frames_of("sphere")
+
+
+@pytest.fixture(scope="module")
+def box():
+    return Band(shell(box_sdf, 2.5)), frames_of("box")
+
+
+def rays_W(frame):
+    """World ray directions R_WC K^-1 (u, v, 1) (H, W, 3) and the camera centre."""
+    H, W = frame.depth_m.shape
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    K = frame.K
+    d_C = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    return d_C @ frame.T_W_C[:3, :3].T, frame.T_W_C[:3, 3]
+
+
+def sample_points(frame, pixel, z):
+    ray, cam = rays_W(frame)
+    return cam + z[:, None] * ray.reshape(-1, 3)[pixel]
+
+
+def box_faces(frame):
+    """Per pixel: the box face (0..5 = axis * 2 + (positive side)) its surface point lies on, -1
+    if invalid; and a mask of pixels whose 4 neighbours lie on the same face (flat stencil)."""
+    ray, cam = rays_W(frame)
+    p = cam + frame.depth_m[..., None].astype(np.float64) * ray
+    axis = np.abs(p).argmax(-1)
+    positive = np.take_along_axis(p, axis[..., None], -1)[..., 0] > 0
+    face = np.where(frame.depth_m > 0, axis * 2 + positive, -1)
+    flat = face >= 0
+    for dv, du in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        nb = np.full_like(face, -2)
+        H, W = face.shape
+        nb[max(dv, 0):H + min(dv, 0), max(du, 0):W + min(du, 0)] = \
+            face[max(-dv, 0):H + min(-dv, 0), max(-du, 0):W + min(-du, 0)]
+        flat &= nb == face
+    return face, flat
+
+
+def face_normal(face):
+    n = np.zeros(face.shape + (3,))
+    ok = face >= 0
+    n[ok, face[ok] // 2] = np.where(face[ok] % 2 == 1, 1.0, -1.0)
+    return n
+
+
+def stencil_matrix(S, nbr):
+    N = len(S)
+    keep = nbr >= 0
+    rows = np.broadcast_to(np.arange(N)[:, None], nbr.shape)
+    return sp.csr_matrix((S[keep].astype(np.float64), (rows[keep], nbr[keep])), shape=(N, N))
+
+
+# -- tests ------------------------------------------------------------------------------------
+
+def test_stencil_equals_csr_assembled_from_the_rows(sphere):
+    """(a) The accumulated stencil is A^T W A and h is A^T W y (A, W, y from frame_rows, scipy
+    CSR), over 3 frames at strides 1, 2, 1; the stencil is exactly symmetric and empty towards
+    voxels outside the band."""
+    band, frames = sphere
+    obs = band.observer()
+    rows = []
+    for frame, stride in zip(frames, (1, 2, 1)):
+        obs.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=stride)
+        rows.append(obs.frame_rows(frame.depth_m, frame.K, frame.T_W_C, stride=stride))
+    S, h, stats = obs.finalize()
+    idx = np.concatenate([r["idx"] for r in rows])
+    a = np.concatenate([r["a"] for r in rows])
+    w = np.concatenate([r["w"] for r in rows])
+    y = np.concatenate([r["y"] for r in rows])
+    R, N = len(idx), len(band.ijk)
+    assert stats["samples_accepted"] == R > 1000 and stats["saturated"] == 0
+    A = sp.csr_matrix((a.ravel(), (np.repeat(np.arange(R), 8), idx.ravel())), shape=(R, N))
+    Q_ref = (A.T @ sp.diags(w) @ A).tocsr()
+    h_ref = A.T @ (w * y)
+    Q = stencil_matrix(S, band.nbr)
+    assert sp.linalg.norm(Q - Q_ref) / sp.linalg.norm(Q_ref) < 1e-5
+    x = np.random.default_rng(0).standard_normal(N)
+    assert np.linalg.norm(Q @ x - Q_ref @ x) / np.linalg.norm(Q_ref @ x) < 1e-5
+    assert np.linalg.norm(h - h_ref) / np.linalg.norm(h_ref) < 1e-5
+    assert (S[band.nbr < 0] == 0).all()
+    i, o = np.nonzero(band.nbr >= 0)
+    np.testing.assert_array_equal(S[i, o], S[band.nbr[i, o], 26 - o])
+
+
+def test_rows_interpolate_the_sample_points(sphere):
+    """Each row's 8 corners are the cell around its sample point x = t + z R K^-1 (u, v, 1):
+    the weights sum to 1 and interpolate the voxel centres (ijk + 0.5) * voxel to x."""
+    band, frames = sphere
+    obs = band.observer()
+    for frame in frames:
+        r = obs.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+        x = sample_points(frame, r["pixel"], r["z"])
+        centres = (band.ijk[r["idx"]] + 0.5) * VOXEL  # (R, 8, 3)
+        np.testing.assert_allclose(r["a"].sum(1), 1.0, atol=1e-12)
+        assert (r["a"] >= 0).all()
+        np.testing.assert_allclose(np.einsum("rc,rcx->rx", r["a"], centres), x, atol=1e-9)
+        # the cell is the one around x (no corner further than one voxel on any axis)
+        assert (np.abs(centres - x[:, None]) <= VOXEL * (1 + 1e-9)).all()
+
+
+def test_plane_observations_are_signed_distances(box):
+    """(b) On a flat box face, y of every sample is its signed distance to the face plane
+    (positive in front), exact up to float32 depth rounding."""
+    band, frames = box
+    obs = band.observer()
+    n_checked = 0
+    for frame in frames:
+        face, flat = box_faces(frame)
+        r = obs.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+        sel = flat.ravel()[r["pixel"]]
+        f = face.ravel()[r["pixel"][sel]]
+        x = sample_points(frame, r["pixel"][sel], r["z"][sel])
+        sdf = np.where(f % 2 == 1, 1.0, -1.0) * x[np.arange(len(f)), f // 2] - R_OBJ
+        np.testing.assert_allclose(r["y"][sel], sdf, atol=1e-6)
+        assert (np.abs(sdf) > VOXEL).any()  # samples away from the surface are included
+        n_checked += sel.sum()
+    assert n_checked > 300
+
+
+def test_plane_normals_face_the_camera(box):
+    """(c) Normals of flat box-face pixels are the face's outward normal (which faces the
+    camera); every normal is a unit vector facing the camera; an isolated pixel falls back to
+    the negated ray direction."""
+    band, frames = box
+    obs = band.observer()
+    for frame in frames:
+        face, flat = box_faces(frame)
+        n, fallback = obs.frame_normals(frame.depth_m, frame.K, frame.T_W_C)
+        ray, _ = rays_W(frame)
+        valid = frame.depth_m > 0
+        assert flat.sum() > 100
+        np.testing.assert_allclose(n[flat], face_normal(face)[flat], atol=2e-5)
+        np.testing.assert_allclose(np.linalg.norm(n[valid], axis=-1), 1.0, atol=1e-5)
+        assert ((n[valid] * ray[valid]).sum(-1) < 0).all()
+        assert not fallback[flat].any()
+    frame = frames[0]
+    lone = np.zeros_like(frame.depth_m)
+    lone[10, 25] = 1.3
+    lone[20, 5] = 1.3  # plus a pixel whose neighbours are all 1 m away (a depth jump)
+    lone[19:22, 4:7][[0, 1, 1, 2], [1, 0, 2, 1]] = 0.3
+    n, fallback = obs.frame_normals(lone, frame.K, frame.T_W_C)
+    ray, _ = rays_W(frame)
+    for v, u in ((10, 25), (20, 5)):
+        assert fallback[v, u]
+        np.testing.assert_allclose(n[v, u], -ray[v, u] / np.linalg.norm(ray[v, u]), atol=1e-6)
+
+
+def test_each_pixel_counts_its_information_once(box):
+    """(d) Per pixel, the weights of its accepted samples are equal and sum to 1 / sigma^2,
+    sigma^2 = ((a + b (D - z0)^2) / max(cos, cos_min))^2 + sigma_pose^2 + sigma_model^2 with the
+    true face normal; summed over the stencil, S holds exactly sum over pixels of 1 / sigma^2."""
+    band, frames = box
+    obs = band.observer()
+    total_info = 0.0
+    for frame in frames:
+        face, flat = box_faces(frame)
+        r = obs.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+        obs.integrate(frame.depth_m, frame.K, frame.T_W_C)
+        pix, n_acc = np.unique(r["pixel"], return_counts=True)
+        info = np.bincount(r["pixel"], weights=r["w"], minlength=flat.size)[pix]
+        of_row = np.searchsorted(pix, r["pixel"])
+        np.testing.assert_allclose(r["w"] * n_acc[of_row], info[of_row], rtol=1e-12)  # equal w
+        assert len(set(n_acc.tolist())) > 1  # pixels with different sample counts
+        total_info += info.sum()
+        ray, _ = rays_W(frame)
+        ray = ray.reshape(-1, 3)[pix]
+        D = frame.depth_m.ravel()[pix].astype(np.float64)
+        cos = -(face_normal(face).reshape(-1, 3)[pix] * ray).sum(-1) / np.linalg.norm(ray, axis=-1)
+        a, b, z0, cmin = (NOISE[k] for k in ("depth_a_m", "depth_b", "depth_z0_m", "cos_min"))
+        sd = (a + b * (D - z0) ** 2) / np.maximum(cos, cmin)
+        var = sd ** 2 + NOISE["sigma_pose_m"] ** 2 + NOISE["sigma_model_m"] ** 2
+        on_face = flat.ravel()[pix]
+        assert on_face.sum() > 100 and (cos[on_face] < cmin).any() and (cos[on_face] > cmin).any()
+        np.testing.assert_allclose(info[on_face], 1.0 / var[on_face], rtol=1e-4)
+    S, _, _ = obs.finalize()
+    # sum_{i,o} S[i, o] = sum_k w_k (sum_c a_c)^2 = sum_k w_k = sum_pixels 1 / sigma^2
+    np.testing.assert_allclose(S.astype(np.float64).sum(), total_info, rtol=1e-5)
+
+
+def test_accumulation_is_deterministic_and_order_free(sphere):
+    """(e) The same frames give bitwise identical S and h, run twice or in reverse order."""
+    band, frames = sphere
+    results = []
+    for order in (frames, frames, frames[::-1]):
+        obs = band.observer()
+        for frame in order:
+            obs.integrate(frame.depth_m, frame.K, frame.T_W_C)
+        results.append(obs.finalize())
+    for S, h, stats in results[1:]:
+        np.testing.assert_array_equal(S, results[0][0])
+        np.testing.assert_array_equal(h, results[0][1])
+        assert stats == results[0][2]
+    assert np.abs(results[0][1]).max() > 0
+
+
+def test_samples_whose_cell_leaves_the_band_are_dropped(sphere):
+    """(f) With a band thinner than +-tau, exactly the samples whose cell has a corner outside
+    the band (dense-grid reference) are dropped, and they are counted."""
+    band_full, frames = sphere
+    band = Band(shell(sphere_sdf, 1.2))
+    obs = band.observer()
+    for frame, stride in zip(frames, (1, 2)):
+        r = obs.frame_rows(frame.depth_m, frame.K, frame.T_W_C, stride=stride)
+        counts = obs.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=stride)
+        assert counts == r["counts"]
+        H, W = frame.depth_m.shape
+        v, u = np.mgrid[0:H:stride, 0:W:stride]
+        pixel = (v * W + u).ravel()
+        pixel = pixel[frame.depth_m.ravel()[pixel] > 0]
+        m = int(round(TRUNC / VOXEL))
+        z = (frame.depth_m.ravel()[pixel].astype(np.float64)[:, None]
+             + np.arange(-m, m + 1) * VOXEL).ravel()
+        pixel = np.repeat(pixel, 2 * m + 1)
+        c0 = np.floor(sample_points(frame, pixel, z) / VOXEL - 0.5).astype(np.int64)
+        corners = c0[:, None] + np.array([[c >> 2, (c >> 1) & 1, c & 1] for c in range(8)])
+        inside = (band.index_of(corners) >= 0).all(axis=1)
+        assert (~inside).sum() > 0 and inside.sum() > 0
+        assert counts["samples_dropped"] == (~inside).sum()
+        assert counts["samples_accepted"] == inside.sum()
+        got = set(zip(r["pixel"].tolist(), np.round(r["z"], 9).tolist()))
+        assert got == set(zip(pixel[inside].tolist(), np.round(z[inside], 9).tolist()))
+        assert (r["idx"] >= 0).all()
+    _, _, stats = obs.finalize()
+    assert stats["samples_dropped"] > 0 and stats["frames"] == 2
+
+
+def test_bad_inputs_are_rejected(sphere):
+    """A noise model without a weight floor, a depth image with NaN and a bad stride raise
+    ValueError naming the problem (nothing is accumulated)."""
+    band, frames = sphere
+    with pytest.raises(ValueError, match="floor"):
+        band.observer(depth_a_m=0.0, sigma_pose_m=0.0, sigma_model_m=0.0)
+    obs = band.observer()
+    frame = frames[0]
+    bad = frame.depth_m.copy()
+    bad[3, 4] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        obs.integrate(bad, frame.K, frame.T_W_C)
+    with pytest.raises(ValueError, match="stride"):
+        obs.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=0)
+    S, h, stats = obs.finalize()
+    assert stats["frames"] == 0 and not S.any() and not h.any()

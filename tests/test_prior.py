@@ -1,0 +1,178 @@
+"""kernels.prior.add_prior against a GMRF precision assembled independently as a scipy CSR matrix.
+
+The reference builds Q0 from an explicit edge list (each undirected edge once, found with a dict
+of voxel coordinates, not with the band's neighbour table) on a small sphere band, and the
+stencil S is compared with it entry by entry; then symmetry, positive definiteness for each
+anchor mode, and the membrane's null space (the constant vector).
+"""
+
+import itertools
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import taichi as ti
+from scipy.sparse.csgraph import connected_components
+
+from kernels.band import build_band
+from kernels.prior import ANCHOR_MODES, add_prior
+
+VOXEL = 0.01
+TAU_B = 0.02
+LAM, LAM_B = 2.5, 0.7  # 1/m^2 (any positive numbers: the algebra is what is tested)
+
+
+@pytest.fixture(scope="module")
+def band():
+    """A small band (~900 voxels) around a sphere of radius 2.5 voxels, cut by the grid's box."""
+    r = np.arange(-5, 5)
+    ijk = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    sdf = np.linalg.norm((ijk + 0.5) * VOXEL - [0.002, -0.001, 0.003], axis=1) - 0.025
+    keep = sdf >= -TAU_B
+    ijk, sdf = ijk[keep].astype(np.int32), sdf[keep]
+    weight = np.random.default_rng(1).integers(1, 20, len(ijk)).astype(np.float32)
+    tsdf = np.clip(sdf, -TAU_B, TAU_B).astype(np.float32)
+    out = build_band(ijk, tsdf, weight, TAU_B)
+    assert 300 < len(out["ijk"]) < 1000
+    return out
+
+
+def reference_prior(ijk, tsdf, weight, stencil, lam, lam_b, eps, anchors):
+    """(Q0 CSR float64, b0 float64) from the math of DESIGN.md 3.4, independent of kernels."""
+    n = len(ijk)
+    max_sq = {6: 1, 18: 2, 26: 3}[stencil]
+    deltas = [d for d in itertools.product((-1, 0, 1), repeat=3)
+              if 0 < sum(x * x for x in d) <= max_sq]
+    index = {tuple(v): i for i, v in enumerate(ijk.tolist())}
+    rows, cols, vals = [], [], []
+    boundary = np.zeros(n, bool)
+    for i, v in enumerate(ijk.tolist()):
+        for d in deltas:
+            j = index.get((v[0] + d[0], v[1] + d[1], v[2] + d[2]))
+            if j is None:
+                boundary[i] = True
+            elif d > (0, 0, 0):  # each undirected edge once: lam w (x_i - x_j)^2
+                w = lam / sum(x * x for x in d)
+                rows += [i, j, i, j]
+                cols += [i, j, j, i]
+                vals += [w, w, -w, -w]
+    if anchors == "boundary":
+        a = np.where(boundary, lam_b, 0.0)
+    elif anchors == "all":
+        a = lam_b * weight.astype(np.float64) / weight.max()
+    else:
+        a = np.zeros(n)
+    Q = sp.coo_matrix((vals, (rows, cols)), shape=(n, n)).tocsr() + sp.diags(a + eps)
+    return Q.tocsr(), a * tsdf.astype(np.float64)
+
+
+def stencil_to_csr(S, nbr):
+    i, o = np.nonzero(nbr >= 0)
+    n = len(nbr)
+    return sp.csr_matrix((S[i, o].astype(np.float64), (i, nbr[i, o])), shape=(n, n))
+
+
+def run_prior(band, stencil, anchors, eps, b0_dtype=np.float32, S=None):
+    n = len(band["ijk"])
+    S = np.zeros((n, 27), np.float32) if S is None else S
+    b0 = np.full(n, np.nan, b0_dtype)  # written, not added: NaN must disappear
+    add_prior(S, b0, band["nbr"], band["tsdf"], band["weight"], lam=LAM, lam_b=LAM_B, eps=eps,
+              stencil=stencil, anchors=anchors)
+    return S, b0
+
+
+@pytest.mark.parametrize("stencil", [6, 18, 26])
+@pytest.mark.parametrize("anchors", ANCHOR_MODES)
+def test_stencil_equals_reference_csr(band, stencil, anchors):
+    eps = 1e-3
+    S, b0 = run_prior(band, stencil, anchors, eps)
+    Q_ref, b0_ref = reference_prior(band["ijk"], band["tsdf"], band["weight"], stencil, LAM,
+                                    LAM_B, eps, anchors)
+    Q = stencil_to_csr(S, band["nbr"])
+    diff = (Q - Q_ref).tocoo()
+    ref_at = np.asarray(Q_ref[diff.row, diff.col]).ravel()
+    assert (np.abs(diff.data) <= 1e-6 * np.abs(ref_at)).all()  # entry by entry, same pattern
+    assert Q.count_nonzero() == Q_ref.count_nonzero()
+    np.testing.assert_allclose(b0, b0_ref, rtol=1e-6, atol=0)
+    if anchors != "none":
+        assert (b0 != 0).sum() > 10
+    # S is exactly symmetric: S[i, o] == S[nbr[i, o], 26 - o]
+    i, o = np.nonzero(band["nbr"] >= 0)
+    np.testing.assert_array_equal(S[i, o], S[band["nbr"][i, o], 26 - o])
+
+
+@pytest.mark.parametrize("anchors,eps", [("boundary", 0.0), ("all", 0.0), ("none", 1e-2)])
+def test_positive_definite_for_each_anchor_mode(band, anchors, eps):
+    S, _ = run_prior(band, 6, anchors, eps)
+    eig = np.linalg.eigvalsh(stencil_to_csr(S, band["nbr"]).toarray())
+    assert eig[0] > 1e-6 * eig[-1]  # anchors alone (eps = 0) or eps alone make Q0 definite
+    if anchors == "none":
+        np.testing.assert_allclose(eig[0], eps, rtol=1e-3)  # the constant mode, lifted by eps
+
+
+@pytest.mark.parametrize("stencil", [6, 26])
+def test_membrane_null_space_is_the_constant_vector(band, stencil):
+    S, b0 = run_prior(band, stencil, "none", 0.0)
+    Q = stencil_to_csr(S, band["nbr"])
+    assert connected_components(Q, directed=False)[0] == 1  # precondition: one component
+    diag = S[:, 13].astype(np.float64)
+    assert np.abs(Q @ np.ones(len(S))).max() <= 1e-6 * diag.max()  # Q0 1 = 0
+    eig = np.linalg.eigvalsh(Q.toarray())
+    assert abs(eig[0]) <= 1e-5 * eig[-1] and eig[1] > 1e-4 * eig[-1]  # null space: 1-D
+    assert (b0 == 0).all()
+
+
+def test_prior_adds_to_an_existing_stencil(band):
+    nbr = band["nbr"]
+    i, o = np.nonzero(nbr >= 0)
+    lo, hi = np.minimum(i, nbr[i, o]), np.maximum(i, nbr[i, o])
+    S0 = np.zeros(nbr.shape, np.float32)  # a symmetric "data term" already in S
+    S0[i, o] = ((lo * 7919 + hi * 104729) % 97).astype(np.float32) / 97
+    S, _ = run_prior(band, 18, "boundary", 1e-3, S=S0.copy())
+    Q_only, _ = run_prior(band, 18, "boundary", 1e-3)
+    np.testing.assert_allclose(S, S0.astype(np.float64) + Q_only, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(S[i, o], S[nbr[i, o], 26 - o])
+
+
+def test_float64_rhs_and_taichi_ndarrays(band):
+    S32, b32 = run_prior(band, 26, "all", 1e-3)
+    _, b64 = run_prior(band, 26, "all", 1e-3, b0_dtype=np.float64)
+    np.testing.assert_allclose(b64, b32, rtol=1e-6)
+    n = len(S32)
+    arrays = {}
+    for name, dtype, shape in (("S", ti.f32, (n, 27)), ("b0", ti.f64, (n,)),
+                               ("nbr", ti.i32, (n, 27)), ("tsdf", ti.f32, (n,)),
+                               ("weight", ti.f32, (n,))):
+        arrays[name] = ti.ndarray(dtype, shape=shape)
+    for name in ("nbr", "tsdf", "weight"):
+        arrays[name].from_numpy(band[name])
+    add_prior(**arrays, lam=LAM, lam_b=LAM_B, eps=1e-3, stencil=26, anchors="all")
+    np.testing.assert_array_equal(arrays["S"].to_numpy(), S32)
+    np.testing.assert_allclose(arrays["b0"].to_numpy(), b64, rtol=0)
+
+
+def test_empty_band_is_a_no_op():
+    add_prior(np.zeros((0, 27), np.float32), np.zeros(0, np.float32), np.zeros((0, 27), np.int32),
+              np.zeros(0, np.float32), np.zeros(0, np.float32), lam=1.0, lam_b=1.0, eps=0.0)
+
+
+@pytest.mark.parametrize("bad", ["anchors", "stencil", "lam", "shape", "dtype", "ti_dtype"])
+def test_bad_arguments_are_rejected(band, bad):
+    n = len(band["ijk"])
+    args = dict(S=np.zeros((n, 27), np.float32), b0=np.zeros(n, np.float32), nbr=band["nbr"],
+                tsdf=band["tsdf"], weight=band["weight"])
+    kw = dict(lam=LAM, lam_b=LAM_B, eps=0.0, stencil=6, anchors="boundary")
+    if bad == "anchors":
+        kw["anchors"] = "edges"
+    elif bad == "stencil":
+        kw["stencil"] = 8
+    elif bad == "lam":
+        kw["lam"] = -1.0
+    elif bad == "shape":
+        args["b0"] = np.zeros(n + 1, np.float32)
+    elif bad == "dtype":
+        args["S"] = np.zeros((n, 27), np.float64)
+    else:
+        args["b0"] = ti.ndarray(ti.i32, shape=(n,))
+    with pytest.raises(ValueError):
+        add_prior(**args, **kw)
