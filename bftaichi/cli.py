@@ -51,6 +51,16 @@ def _print_summary(report: dict, out: Path) -> None:
     click.echo(f"time: total {s['total']:.2f} s (TSDF {s['tsdf']:.2f} s = {fps:.0f} frames/s, "
                f"mesh {s['mesh']:.2f} s, reading frames {s['read_frames']:.2f} s)")
     click.echo(f"tsdf_mesh.ply: {c['tsdf_mesh_vertices']:,} vertices, {c['tsdf_mesh_faces']:,} faces")
+    if report.get("solver"):
+        m, v = report["solver"]["map"], report["solver"]["variance"]
+        state = "converged" if m["converged"] else "NOT CONVERGED"
+        click.echo(f"mesh.ply: {c['mesh_vertices']:,} vertices, {c['mesh_faces']:,} faces; "
+                   f"band {c['band_voxels']:,} voxels; MAP PCG {state} in {m['iterations']} "
+                   f"iterations (relative residual {m['relative_residual']:.1e}); "
+                   f"variance from {v['n_probes']} probes ({s['posterior']:.2f} s)")
+        if not m["converged"]:
+            click.echo("warning: the MAP solve did not converge; mesh.ply is written but flagged "
+                       "in report.json (raise solver.maxiter or check the scene)", err=True)
     if c["empty_frames"]:
         click.echo(f"warning: {c['empty_frames']} of {c['frames']} frames observed no voxel; if that "
                    "is unexpected, check that poses are T_W_C (camera-to-world), not T_C_W, and the "

@@ -33,6 +33,10 @@ __all__ = [
     "TSDFConfig",
     "MeshConfig",
     "EvalConfig",
+    "BandConfig",
+    "ObservationConfig",
+    "PriorConfig",
+    "SolverConfig",
     "RunConfig",
     "load_config",
 ]
@@ -292,6 +296,129 @@ class EvalConfig:
 
 
 @dataclass
+class BandConfig:
+    """``[band]``: the narrow band of unknowns around the bootstrap surface (DESIGN.md 3.2)."""
+
+    stencil: int = 26
+    """Neighbours of the GMRF prior: 6 (faces), 18 (+ edges) or 26 (+ corners), weights
+    ``1/|offset|^2``. The stored stencil has 27 points either way (the data term needs them), so
+    26 costs no extra time per Q·x."""
+
+    def check(self) -> None:
+        if self.stencil not in (6, 18, 26):
+            raise ConfigError(f"band.stencil = {self.stencil} is not one of 6, 18, 26")
+
+
+@dataclass
+class ObservationConfig:
+    """``[observation]``: depth pixels -> SDF samples (DESIGN.md 3.3)."""
+
+    stride: int = 2
+    """Use every n-th pixel in u and v (1 = all). Neighbouring pixels at stride 1 see nearly the
+    same surface point; 2 keeps the information of a 1 cm voxel grid at a quarter of the cost."""
+
+    spacing_voxels: float = 1.0
+    """Spacing of the samples along each ray within ``+-tsdf.trunc_m``, in voxels."""
+
+    depth_a_m: float = 0.0012
+    """Depth noise model ``sigma_z(z) = a + b (z - z0)^2`` (Kinect axial, Nguyen et al. 2012):
+    constant term, metres."""
+
+    depth_b: float = 0.0019
+    """Quadratic term, 1/metre."""
+
+    depth_z0_m: float = 0.4
+    """Reference depth, metres."""
+
+    cos_min: float = 0.3
+    """The depth error grows as ``1/cos(angle)`` between ray and normal, capped at
+    ``1/cos_min`` so grazing pixels still count a little."""
+
+    sigma_pose_m: float = 0.0
+    """Pose (trajectory) error folded into every sample, metres (0 for ground-truth poses)."""
+
+    sigma_model_m: float = 0.001
+    """Model error of a trilinear SDF within one voxel and of the normal estimate, metres."""
+
+    def check(self) -> None:
+        _check_range("observation.stride", self.stride, 1, 64)
+        _check_range("observation.spacing_voxels", self.spacing_voxels, 0.1, 10.0)
+        _check_range("observation.depth_a_m", self.depth_a_m, 0.0)
+        _check_range("observation.depth_b", self.depth_b, 0.0)
+        _check_range("observation.cos_min", self.cos_min, 0.01, 1.0)
+        _check_range("observation.sigma_pose_m", self.sigma_pose_m, 0.0)
+        _check_range("observation.sigma_model_m", self.sigma_model_m, 0.0)
+        if self.depth_a_m + self.sigma_pose_m + self.sigma_model_m <= 0:
+            raise ConfigError("observation: depth_a_m, sigma_pose_m and sigma_model_m are all 0, "
+                              "so a sample would have zero variance (infinite weight)")
+
+
+@dataclass
+class PriorConfig:
+    """``[prior]``: the GMRF prior ``lam * sum w_ij (x_i - x_j)^2 + lam_b * sum (x_i - tsdf_i)^2``.
+
+    Strengths are given per voxel (dimensionless) and divided by ``voxel_size^2`` internally, so a
+    prior means the same at every resolution: the prior standard deviation of the difference of two
+    face neighbours is ``voxel_size / sqrt(lam)``."""
+
+    lam: float = 0.1
+    """Membrane (first-order smoothness) strength per voxel^2. The membrane penalises the SDF's
+    unit slope, so a strong one bends the surface where data ends (plane edges, silhouettes).
+    Measured on the default scene (Kinect noise): CD 3.9e-5 at 0.1, 4.3e-5 at 0.3, 5.4e-5 at 1
+    (TSDF: 6.0e-5); on a noiseless plane 0.1 also beats 1 (RMS 0.45 vs 1.6 mm)."""
+
+    lam_b: float = 1.0
+    """Anchor strength pulling anchored voxels to their TSDF value, per voxel^2."""
+
+    anchors: str = "boundary"
+    """Anchored voxels: ``none``, ``boundary`` (the band boundary, as in the paper) or ``all``
+    (every observed voxel, weighted by its TSDF weight)."""
+
+    eps: float = 1e-4
+    """``eps * I`` per voxel^2 keeps Q positive definite where nothing else does."""
+
+    def check(self) -> None:
+        _check_range("prior.lam", self.lam, 0.0)
+        _check_range("prior.lam_b", self.lam_b, 0.0)
+        _check_choice("prior.anchors", self.anchors, ("none", "boundary", "all"))
+        _check_range("prior.eps", self.eps, 0.0, lo_open=True)
+
+
+@dataclass
+class SolverConfig:
+    """``[solver]``: PCG for the MAP and the probe variance (DESIGN.md 3.5-3.6)."""
+
+    tol: float = 1e-6
+    """Relative residual ``||h - Q mu|| / ||h||`` at which PCG stops."""
+
+    maxiter: int = 2000
+    """PCG iteration limit; a solve that reaches it is reported as not converged."""
+
+    probes: int = 16
+    """Number of probe vectors K for ``diag(Q^-1)``."""
+
+    probe_method: str = "coloring"
+    """``coloring`` (lattice-coloured probes: one probe per colour, voxels of a colour at least
+    2.45 voxels apart at K = 16) or ``rademacher`` (the paper). Measured against the exact
+    ``diag(Q^-1)`` on a pipeline Q (tests/test_pcg.py, tools/bench_core.py --accuracy): median
+    relative error at K = 16 near the surface 7 % (coloring) vs 22 % (rademacher)."""
+
+    probe_tol: float = 1e-4
+    """Relative residual of the probe solves (variance needs fewer digits than the mean)."""
+
+    seed: int = 0
+    """Seed of the probe vectors."""
+
+    def check(self) -> None:
+        _check_range("solver.tol", self.tol, 0.0, 1.0, lo_open=True)
+        _check_range("solver.maxiter", self.maxiter, 1, 1_000_000)
+        _check_range("solver.probes", self.probes, 1, 1024)
+        _check_choice("solver.probe_method", self.probe_method, ("rademacher", "coloring"))
+        _check_range("solver.probe_tol", self.probe_tol, 0.0, 1.0, lo_open=True)
+        _check_range("solver.seed", self.seed, 0)
+
+
+@dataclass
 class RunConfig:
     """``[run]``: how the run executes."""
 
@@ -301,8 +428,13 @@ class RunConfig:
     seed: int = 0
     """Master seed of the run's random choices (synthetic noise has its own ``synthetic.seed``)."""
 
+    stages: str = "full"
+    """``full`` (TSDF bootstrap + probabilistic posterior: tsdf_mesh.ply and mesh.ply with sigma)
+    or ``tsdf_only`` (the bootstrap alone, e.g. as a fast baseline)."""
+
     def check(self) -> None:
         _check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
+        _check_choice("run.stages", self.stages, ("full", "tsdf_only"))
 
 
 @dataclass
@@ -313,6 +445,10 @@ class Config:
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     tsdf: TSDFConfig = field(default_factory=TSDFConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
+    band: BandConfig = field(default_factory=BandConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     run: RunConfig = field(default_factory=RunConfig)
 

@@ -1,8 +1,10 @@
-"""A run: frames -> TSDF bootstrap -> mesh -> metrics -> the DESIGN.md section 4 outputs.
+"""A run: frames -> TSDF bootstrap -> (probabilistic posterior) -> meshes -> metrics -> the
+DESIGN.md section 4 outputs.
 
-Stages implemented at this point: the TSDF bootstrap (``tsdf_mesh.ply``), ``band.npz`` with the
-observed voxels' ``tsdf`` and ``weight``, ``report.json`` and ``config.toml``. The probabilistic
-posterior (``mesh.ply`` with sigma, ``mean``/``var`` in ``band.npz``) is a later stage.
+``run.stages = "full"`` (default) writes ``tsdf_mesh.ply``, ``mesh.ply`` (with per-vertex sigma),
+``band.npz`` (band voxels: ``ijk, voxel_size, mean, var, tsdf, weight``), ``report.json`` and
+``config.toml``. ``"tsdf_only"`` stops after the bootstrap; its ``band.npz`` then holds every
+observed voxel's ``tsdf`` and ``weight``.
 """
 
 from __future__ import annotations
@@ -106,6 +108,27 @@ def _progress(iterable, total: int, desc: str, enabled: bool):
                 leave=False)
 
 
+class _FrameReader:
+    """Iterate over frames in order while the next frame is read in a background thread (PNG
+    decoding and Taichi kernels both release the GIL). Accumulates the seconds spent waiting."""
+
+    def __init__(self, progress: bool):
+        self.progress = progress
+        self.wait_s = 0.0
+
+    def __call__(self, frames, desc: str):
+        n = len(frames)
+        with ThreadPoolExecutor(max_workers=1) as reader:
+            pending = reader.submit(frames.__getitem__, 0) if n else None
+            for i in _progress(range(n), n, desc, self.progress):
+                t0 = time.perf_counter()
+                frame = pending.result()
+                self.wait_s += time.perf_counter() - t0
+                if i + 1 < n:
+                    pending = reader.submit(frames.__getitem__, i + 1)
+                yield frame
+
+
 def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         progress: bool = True) -> dict:
     """Run the pipeline of ``cfg`` and write its outputs into ``out_dir``; return the report.
@@ -125,21 +148,11 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m,
                      max_weight=cfg.tsdf.max_weight, integrate_rgb=cfg.tsdf.integrate_rgb,
                      depth_max_m=cfg.scene.depth_max_m, arch=cfg.run.arch)
-    wait_s = 0.0
-    with timer("tsdf"), ThreadPoolExecutor(max_workers=1) as reader:
-        # Read (decode) frame i+1 in a thread while frame i integrates; PNG decoding and the
-        # Taichi kernel both release the GIL. Frames are still integrated in order.
-        n = len(frames)
-        pending = reader.submit(frames.__getitem__, 0)
-        for i in _progress(range(n), n, "integrate", progress):
-            t0 = time.perf_counter()
-            frame = pending.result()
-            wait_s += time.perf_counter() - t0
-            if i + 1 < n:
-                pending = reader.submit(frames.__getitem__, i + 1)
+    reader = _FrameReader(progress)
+    with timer("tsdf"):
+        for frame in reader(frames, "integrate"):
             vol.integrate(frame.depth_m, frame.K, frame.T_W_C, rgb=frame.rgb, name=frame.name)
-    timer.seconds["tsdf"] = round(timer.seconds["tsdf"] - wait_s, 4)
-    timer.seconds["read_frames"] = round(wait_s, 4)  # time spent waiting for frames
+    timer.seconds["tsdf"] = round(timer.seconds["tsdf"] - reader.wait_s, 4)
     stats = vol.stats()
     with timer("export"):
         voxels = vol.export()
@@ -156,6 +169,17 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
             f"{len(voxels['ijk'])} voxels were observed but no cell has all 8 corners with weight >= "
             f"mesh.min_weight = {cfg.mesh.min_weight}, so there is no surface to mesh; lower "
             "mesh.min_weight or add frames. No mesh was written.")
+    post = post_mesh = None
+    if cfg.run.stages == "full":
+        from .posterior import solve_posterior
+
+        wait0 = reader.wait_s
+        with timer("posterior"):
+            post = solve_posterior(frames, voxels, cfg, frame_iter=reader)
+        timer.seconds["posterior"] = round(timer.seconds["posterior"] - (reader.wait_s - wait0), 4)
+        with timer("mesh"):
+            post_mesh = post.extract_mesh()
+    timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
     metrics = {}
     if gt is not None:
         from .metrics import geometry_metrics
@@ -163,17 +187,28 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         with timer("metrics"):
             metrics["tsdf_mesh.ply"] = geometry_metrics(
                 mesh, gt, cfg.eval.thresholds_mm, cfg.eval.n_samples, cfg.eval.seed)
+            if post_mesh is not None:
+                metrics["mesh.ply"] = geometry_metrics(
+                    post_mesh, gt, cfg.eval.thresholds_mm, cfg.eval.n_samples, cfg.eval.seed)
     with timer("write"):
         colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None
         write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors)
-        write_npz(out / "band.npz", ijk=voxels["ijk"], voxel_size=np.float32(cfg.tsdf.voxel_size_m),
-                  tsdf=voxels["tsdf"], weight=voxels["weight"])
+        vs32 = np.float32(cfg.tsdf.voxel_size_m)
+        if post is None:
+            write_npz(out / "band.npz", ijk=voxels["ijk"], voxel_size=vs32, tsdf=voxels["tsdf"],
+                      weight=voxels["weight"])
+        else:
+            write_mesh_ply(out / "mesh.ply", post_mesh.vertices, post_mesh.faces,
+                           vertex_attrs={"sigma": post_mesh.vertex_attributes["sigma"]})
+            write_npz(out / "band.npz", ijk=post.ijk, voxel_size=vs32, mean=post.mean,
+                      var=post.var, tsdf=post.tsdf, weight=post.weight)
         save_config(cfg, out / "config.toml")
     report = {
         "bftaichi_version": __version__,
         "scene": cfg.scene.name,
         "source": getattr(frames, "name", cfg.scene.data),
-        "stages_run": ["tsdf", "mesh"] + (["metrics"] if metrics else []),
+        "stages_run": ["tsdf", "mesh"] + (["posterior"] if post else [])
+        + (["metrics"] if metrics else []),
         "seconds": {**timer.seconds, "total": round(time.perf_counter() - t_start, 4)},
         "counts": {
             "frames": stats["frames"],
@@ -185,7 +220,12 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
             "out_of_range_samples": stats["out_of_range_samples"],
             "tsdf_mesh_vertices": int(len(mesh.vertices)),
             "tsdf_mesh_faces": int(len(mesh.faces)),
+            **({"band_voxels": int(len(post.ijk)), "mesh_vertices": int(len(post_mesh.vertices)),
+                "mesh_faces": int(len(post_mesh.faces))} if post else {}),
         },
+        "solver": ({"map": post.solver, "variance": post.variance,
+                    "observations": post.observations, "seconds": post.seconds}
+                   if post else None),
         "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m,
                  "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
         "metrics": metrics,

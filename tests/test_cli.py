@@ -15,7 +15,7 @@ from bftaichi.io import read_mesh_ply
 
 from conftest import TINY_SCENE_SETS
 
-RUN_FILES = ("tsdf_mesh.ply", "band.npz", "report.json", "config.toml")
+RUN_FILES = ("tsdf_mesh.ply", "band.npz", "report.json", "config.toml", "mesh.ply")
 
 
 def sets_args(sets=TINY_SCENE_SETS) -> list[str]:
@@ -87,17 +87,19 @@ def test_run_writes_every_output(tiny_run):
 def test_run_band_npz_has_the_documented_arrays(tiny_run):
     report = json.loads((tiny_run / "report.json").read_text())
     with np.load(tiny_run / "band.npz") as band:
-        assert {"ijk", "voxel_size", "tsdf", "weight"} <= set(band.files)
+        assert set(band.files) == {"ijk", "voxel_size", "mean", "var", "tsdf", "weight"}
         ijk, tsdf, weight = band["ijk"], band["tsdf"], band["weight"]
+        mean, var = band["mean"], band["var"]
         voxel_size = band["voxel_size"]
-    n = report["counts"]["observed_voxels"]
+    n = report["counts"]["band_voxels"]
     assert n > 1000
     assert ijk.dtype == np.int32 and ijk.shape == (n, 3)
-    assert tsdf.dtype == np.float32 and tsdf.shape == (n,)
-    assert weight.dtype == np.float32 and weight.shape == (n,)
+    for arr in (tsdf, weight, mean, var):
+        assert arr.dtype == np.float32 and arr.shape == (n,)
     assert voxel_size.shape == () and float(voxel_size) == pytest.approx(0.03)
     assert len(np.unique(ijk, axis=0)) == n                     # each voxel once
-    assert np.all(weight >= 1) and np.all(weight <= 6)          # observed, by at most 6 frames
+    assert np.all(weight >= 0) and np.all(weight <= 6)          # 0 = dilation, at most 6 frames
+    assert np.all(var > 0)
     tau_b = report["tsdf"]["bootstrap_trunc_m"]
     assert tau_b == pytest.approx(2.0 * 0.06)                   # alpha * trunc_m
     assert np.all(np.abs(tsdf) <= tau_b * (1 + 1e-6))           # metres, clamped to +-tau_b

@@ -1,0 +1,153 @@
+"""The probabilistic stage (DESIGN.md section 3, steps 2-7): band -> observations -> GMRF posterior
+-> PCG MAP -> probe variance -> mesh with per-vertex sigma.
+
+All heavy loops are Taichi kernels in ``kernels/`` (band, observe, prior, pcg); this module
+validates, wires them together and packages the result as a :class:`Posterior`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from .config import Config
+from .errors import NoSurfaceError
+
+__all__ = ["Posterior", "solve_posterior"]
+
+
+@dataclass
+class Posterior:
+    """The Gaussian posterior of the SDF over the narrow band.
+
+    Attributes:
+        ijk: (N, 3) int32 band voxel indices (centre ``(ijk + 0.5) * voxel_size``), sorted.
+        voxel_size: metres.
+        mean: (N,) float32 MAP signed distance, metres (positive in free space).
+        var: (N,) float32 estimated marginal variance ``diag(Q^-1)``, metres^2.
+        tsdf: (N,) float32 bootstrap TSDF value, metres; weight: (N,) float32 bootstrap weight.
+        core: (N,) bool, voxel in the undilated band ``|tsdf| < alpha * tau``.
+        solver: MAP PCG stats (converged, iterations, relative_residual).
+        variance: probe stats (probes, method, iterations, not_converged).
+        observations: counts of the observation pass.
+        seconds: wall time of each sub-stage (band, observe, prior, map, variance).
+    """
+
+    ijk: np.ndarray
+    voxel_size: float
+    mean: np.ndarray
+    var: np.ndarray
+    tsdf: np.ndarray
+    weight: np.ndarray
+    core: np.ndarray
+    solver: dict = field(default_factory=dict)
+    variance: dict = field(default_factory=dict)
+    observations: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """(N,) float32 posterior standard deviation, metres."""
+        return np.sqrt(np.maximum(self.var, 0)).astype(np.float32)
+
+    def extract_mesh(self) -> trimesh.Trimesh:
+        """Marching cubes at ``mean = 0`` over cells whose 8 corners are band voxels observed by
+        the bootstrap (weight > 0), with vertex attribute ``sigma`` (metres, trilinear from the
+        voxel variances).
+
+        Why observed corners only: in the one-voxel dilation around the band, nothing but the
+        prior sets the mean, and the membrane prior flattens it toward the anchors and 0, which
+        makes zero crossings where no surface was seen (measured on the default scene: 12 % of
+        vertices more than 1 cm from the truth, 92 % of those in cells with an unobserved
+        corner)."""
+        from .meshing import extract_mesh, sample_field
+
+        inside = np.ones(len(self.ijk), bool)
+        vertices, faces = extract_mesh(self.ijk, self.mean, self.weight > 0, self.voxel_size)
+        mesh = trimesh.Trimesh(vertices, faces, process=False)
+        if len(vertices):
+            var = sample_field(self.ijk, self.var, inside, self.voxel_size, vertices)
+            mesh.vertex_attributes["sigma"] = np.sqrt(np.maximum(np.nan_to_num(var), 0)).astype(
+                np.float32)
+        else:
+            mesh.vertex_attributes["sigma"] = np.zeros(0, np.float32)
+        return mesh
+
+
+def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None) -> Posterior:
+    """Build the band from the bootstrap ``voxels`` (:meth:`TSDFVolume.export`), fuse the
+    observations of ``frames``, solve the MAP and estimate the variance.
+
+    ``frame_iter(frames, desc)`` yields the frames (the pipeline passes a prefetching iterator
+    with a progress bar); default: plain iteration.
+    """
+    from kernels.band import build_band
+    from kernels.observe import Observer
+    from kernels.pcg import pcg, probe_variance
+    from kernels.prior import add_prior
+
+    seconds = {}
+    t0 = time.perf_counter()
+
+    def lap(name):
+        nonlocal t0
+        t1 = time.perf_counter()
+        seconds[name] = round(t1 - t0, 4)
+        t0 = t1
+
+    vs = cfg.tsdf.voxel_size_m
+    band = build_band(voxels["ijk"], voxels["tsdf"], voxels["weight"], cfg.tsdf.bootstrap_trunc_m)
+    n = len(band["ijk"])
+    if n == 0:
+        raise NoSurfaceError("the narrow band is empty: no observed voxel has |tsdf| below the "
+                             "bootstrap truncation, so there is no surface to refine")
+    lap("band")
+    o = cfg.observation
+    observer = Observer(band["block_keys"], band["block_table"], n, vs, cfg.tsdf.trunc_m,
+                        spacing_m=o.spacing_voxels * vs, depth_a_m=o.depth_a_m, depth_b=o.depth_b,
+                        depth_z0_m=o.depth_z0_m, cos_min=o.cos_min, sigma_pose_m=o.sigma_pose_m,
+                        sigma_model_m=o.sigma_model_m)
+    for frame in (frame_iter(frames, "observe") if frame_iter else frames):
+        observer.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=o.stride)
+    S, h_data, obs_stats = observer.finalize()
+    lap("observe")
+
+    # Prior strengths are per voxel^2 in the config (PriorConfig docstring).
+    p = cfg.prior
+    b0 = np.zeros(n, np.float32)
+    add_prior(S, b0, band["nbr"], band["tsdf"], band["weight"], lam=p.lam / vs ** 2,
+              lam_b=p.lam_b / vs ** 2, eps=p.eps / vs ** 2, stencil=cfg.band.stencil,
+              anchors=p.anchors)
+    h = (h_data.astype(np.float64) + b0).astype(np.float32)
+    lap("prior")
+
+    s = cfg.solver
+    mean, info = pcg(S, band["nbr"], h, band["x0"], tol=s.tol, maxiter=s.maxiter)
+    lap("map")
+    var, vinfo = probe_variance(S, band["nbr"], n_probes=s.probes, seed=s.seed,
+                                method=s.probe_method, tol=s.probe_tol, maxiter=s.maxiter,
+                                ijk=band["ijk"])
+    lap("variance")
+    solver = {k: info[k] for k in ("converged", "iterations", "relative_residual")}
+    if "reason" in info:
+        solver["reason"] = info["reason"]
+    solver["residual_history"] = [float(r) for r in info.get("residual_history", [])]
+    return Posterior(ijk=band["ijk"], voxel_size=vs, mean=np.asarray(mean, np.float32),
+                     var=np.asarray(var, np.float32), tsdf=band["tsdf"], weight=band["weight"],
+                     core=band["core"], solver=solver, variance=_plain(vinfo),
+                     observations=_plain(obs_stats), seconds=seconds)
+
+
+def _plain(d: dict) -> dict:
+    """JSON-ready copy: numpy scalars to Python, arrays to lists."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.ndarray):
+            v = v.tolist()
+        elif isinstance(v, np.generic):
+            v = v.item()
+        out[k] = v
+    return out

@@ -1,0 +1,704 @@
+"""Matrix-free posterior precision Q·x, preconditioned CG for the MAP SDF and probe variance
+(DESIGN.md 3, steps 4-6).
+
+Layout (the band contract shared with band.py / observe.py / prior.py)::
+
+    ijk   (N, 3)  int32    band voxels, band_idx 0..N-1 in lexicographic (i, j, k) order
+    nbr   (N, 27) int32    band index of the neighbour at offset o, -1 if not in the band;
+                           o = (di+1)*9 + (dj+1)*3 + (dk+1), o = 13 is the voxel itself
+    S     (N, 27) float32  Q in stencil form: (Q x)_i = sum_o S[i,o] x[nbr[i,o]] over
+                           nbr[i,o] >= 0; symmetric: S[i,o] == S[nbr[i,o], 26-o]; S[i,13] = Q_ii
+    x     (N,)             one vector (float32 or float64)
+    X     (N, K)           K vectors side by side ("a block"): row i holds the K values of
+                           voxel i, so a neighbour's K values are one contiguous load
+
+Inside the solvers every vector block is *padded*: (N+1, K) with a zero first row and voxel
+i in row i+1. A missing neighbour (nbr = -1) then reads row 0, so the stencil loop has no
+branch: ``sum_o S[i,o] * X[nbr[i,o] + 1]`` over all 27 offsets (S must be finite also where
+nbr = -1; those coefficients multiply zero). Measured 1.35x faster than testing nbr >= 0.
+
+* The stencil kernel (:meth:`_Kernels.apply_dot`) is a gather, one thread per chunk of rows,
+  the 27 offsets unrolled (``ti.static``), S and nbr read flat (row i at i*27). It sees a
+  block as N+1 vectors of K lanes (``ti.types.vector(K)``), and LLVM turns each neighbour's K
+  lanes into SIMD loads and multiply-adds, so a block of K vectors costs little more than
+  one vector: S and nbr (216 bytes per voxel, the dominant memory traffic) are read once for
+  all K. Blocks wider than :data:`MAX_LANES` run as several blocks (K = 64 compiles in ~10 s
+  and runs slower per vector than 16).
+* Row sums accumulate in the vectors' dtype: float64 for the MAP solve; float32 for the
+  probes (27 terms round to ~1e-6 relative, far below the probe tolerance; a float64
+  accumulator halves the SIMD width and ran 2-2.5x slower at K = 16).
+* :func:`pcg_batched` is Jacobi-preconditioned conjugate gradients on a block of right-hand
+  sides, each column with its own alpha and beta, all advanced by the same kernels per
+  iteration. :func:`pcg` (the MAP solve: one float64 column) and :func:`probe_variance`
+  (K probes: float32 columns) are its two uses.
+* Reductions (dot products, norms) accumulate in float64 over fixed chunks of
+  :data:`CHUNK` rows, one thread per chunk summing its rows in order, fused into the kernel
+  that produces the vector; the per-chunk partial sums are then added on the host in a fixed
+  order (numpy, axis 0). No float atomics anywhere: every result is bitwise reproducible for
+  the same inputs, independent of the thread count.
+
+Stopping rule, one residual norm throughout: a column has converged when its true relative
+residual ``||b - Q x||_2 / ||b||_2 <= tol``. Each iteration tests the recursively updated
+residual r (the same norm, no extra product); when it passes, r is recomputed as b - Q x
+and the test repeated on that. The value reported as ``relative_residual`` is exactly this
+recomputed norm of the returned x (in float32 blocks it carries float32 rounding, ~1e-7).
+If the recursive residual had drifted (it passes, the true one does not), CG restarts from
+the true residual (p = M^-1 r); :data:`_STALLS` restarts in a row that do not shrink the true
+residual by 10 % end the column as stagnated (tol below what the precision resolves).
+
+Cost (tools/bench_core.py, 500k-voxel sphere band at 1 cm, this 2-core machine shared with
+other jobs, so +-30 %): a single vector costs 18-40 ns per voxel against 16-24 ns for scipy's
+single-threaded CSR SpMV of the same Q (0.5-1.2x): both read about the same bytes per row (27
+float32 + 27 int32 vs ~25 float32 values + 25 int32 column indices) and are memory bound. A
+K = 16 block costs 2.7-4.6 ns per voxel and vector (5-7x CSR SpMV, 1.7-3.2x CSR times an
+(N, 16) matrix). Per CG iteration on a K = 16 block the two vector updates (x, r and p:
+~400 bytes per voxel) take about as long as the product.
+"""
+
+import numpy as np
+import taichi as ti
+
+STENCIL = 27  # offsets {-1, 0, 1}^3
+CENTER = 13  # offset of the voxel itself: (0, 0, 0)
+CHUNK = 1024  # rows per reduction chunk (fixed: results do not depend on the thread count)
+MAX_LANES = 16  # widest compiled vector block (K = 16 probes are one block)
+
+#: (27, 3) int32 offsets (di, dj, dk); row o is offset o = (di+1)*9 + (dj+1)*3 + (dk+1).
+OFFSETS = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"),
+                   axis=-1).reshape(STENCIL, 3).astype(np.int32)
+
+_RUNNING, _CONVERGED, _BREAKDOWN, _STAGNATED = 0, 1, 2, 3
+_STALLS = 2  # restarts in a row without a 10 % smaller true residual: stagnated
+
+
+# -- kernels ---------------------------------------------------------------------------------
+
+_KERNELS = {}
+
+
+class _Kernels:
+    """The stencil kernels for blocks of ``lanes`` vectors of ``dtype`` (compiled on first use;
+    Taichi's offline cache keeps them across runs).
+
+    Arguments: ``S`` and ``nbr`` flattened to (N*27,) (row i at i*27); vectors (N+1, lanes)
+    numpy arrays seen as N+1 vectors of ``lanes`` elements, voxel i in row i+1 and row 0
+    zero (the pad row: see the module docstring); chunk partial sums (n_chunks, lanes)
+    float64; ``dinv`` = 1 / Q_ii (N,) float64. Every loop runs over fixed chunks of
+    :data:`CHUNK` rows, one thread per chunk. All kernels are deterministic: every output
+    element is written by one thread, sums run in a fixed order, no atomics.
+
+    Code shape matters here (checked in the optimised LLVM IR): with the 27 offsets unrolled
+    and the row sums feeding a float64 vector sum, LLVM turns each offset's ``lanes``
+    multiply-adds into SIMD instructions; the same row sums only stored (or stored behind a
+    select) stayed scalar and ran 2-7x slower at 16 lanes. Hence one stencil kernel,
+    :meth:`apply_dot`, for every product, and the residual as apply_dot + subtract. The
+    vector updates stay scalar (each store reloads the array pointer, which blocks LLVM's
+    SLP vectoriser); they stream memory and run at ~7 GB/s.
+    """
+
+    def __init__(self, lanes: int, dtype):
+        V = ti.types.vector(lanes, dtype)
+        VD = ti.types.vector(lanes, ti.f64)
+        VI = ti.types.vector(lanes, ti.i32)
+        flat_s = ti.types.ndarray(dtype=ti.f32, ndim=1)
+        flat_n = ti.types.ndarray(dtype=ti.i32, ndim=1)
+        vec = ti.types.ndarray(dtype=V, ndim=1)
+        part = ti.types.ndarray(dtype=VD, ndim=1)
+        diag = ti.types.ndarray(dtype=ti.f64, ndim=1)
+
+        @ti.func
+        def q_row(S: ti.template(), nbr: ti.template(), X: ti.template(), i: ti.i32):
+            """(Q X)_i = sum_o S[i,o] X[nbr[i,o]]: the 27 offsets unrolled, no branch (a
+            missing neighbour, nbr = -1, reads the zero pad row), accumulated in dtype."""
+            acc = V(0.0)
+            base = i * STENCIL
+            for o in ti.static(range(STENCIL)):
+                acc += ti.cast(S[base + o], dtype) * X[nbr[base + o] + 1]
+            return acc
+
+        @ti.kernel
+        def apply_dot(S: flat_s, nbr: flat_n, P: vec, AP: vec, pap: part):
+            """AP = Q P and the chunk partials of p·Ap (float64; deterministic)."""
+            n = P.shape[0] - 1
+            for c in range(pap.shape[0]):
+                s = VD(0.0)
+                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                    ap = q_row(S, nbr, P, i)
+                    AP[i + 1] = ap
+                    s += ti.cast(P[i + 1], ti.f64) * ti.cast(ap, ti.f64)
+                pap[c] = s
+
+        @ti.kernel
+        def subtract(B: vec, AX: vec, dinv: diag, mask: VI, R: vec, rr: part, rz: part):
+            """r = b - Ax in the lanes where ``mask`` is set (other lanes keep R), and the
+            chunk partials of r·r and r·M^-1 r = sum r_i^2 / Q_ii (float64; deterministic)."""
+            n = R.shape[0] - 1
+            on = mask != 0
+            for c in range(rr.shape[0]):
+                s_rr = VD(0.0)
+                s_rz = VD(0.0)
+                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                    b, ax, r = B[i + 1], AX[i + 1], R[i + 1]  # loads first
+                    r = ti.select(on, b - ax, r)
+                    R[i + 1] = r
+                    r64 = ti.cast(r, ti.f64)
+                    s_rr += r64 * r64
+                    s_rz += r64 * r64 * dinv[i]
+                rr[c] = s_rr
+                rz[c] = s_rz
+
+        @ti.kernel
+        def update_xr(alpha: VD, active: VI, X: vec, R: vec, P: vec, AP: vec, dinv: diag,
+                      rr: part, rz: part):
+            """x = x + alpha p, r = r - alpha Ap in the active lanes, and the chunk partials
+            of r·r and r·M^-1 r (float64; deterministic)."""
+            n = X.shape[0] - 1
+            a = ti.cast(alpha, dtype)
+            on = active != 0
+            for c in range(rr.shape[0]):
+                s_rr = VD(0.0)
+                s_rz = VD(0.0)
+                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                    x, r, p, ap = X[i + 1], R[i + 1], P[i + 1], AP[i + 1]  # loads first
+                    x = ti.select(on, x + a * p, x)
+                    r = ti.select(on, r - a * ap, r)
+                    X[i + 1] = x
+                    R[i + 1] = r
+                    r64 = ti.cast(r, ti.f64)
+                    s_rr += r64 * r64
+                    s_rz += r64 * r64 * dinv[i]
+                rr[c] = s_rr
+                rz[c] = s_rz
+
+        @ti.kernel
+        def update_p(beta: VD, active: VI, R: vec, dinv: diag, P: vec):
+            """p = M^-1 r + beta p in the active lanes (deterministic)."""
+            b = ti.cast(beta, dtype)
+            on = active != 0
+            n = P.shape[0] - 1
+            for c in range((n + CHUNK - 1) // CHUNK):
+                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                    r, p = R[i + 1], P[i + 1]  # loads first
+                    P[i + 1] = ti.select(on, ti.cast(dinv[i], dtype) * r + b * p, p)
+
+        self.apply_dot, self.subtract = apply_dot, subtract
+        self.update_xr, self.update_p = update_xr, update_p
+
+    def residual(self, S, nbr, B, X, dinv, mask, R, AX, rr, rz):
+        """R = B - Q X in the ``mask`` lanes (AX: scratch block), chunk partials of r·r and
+        r·M^-1 r into ``rr``, ``rz``."""
+        self.apply_dot(S, nbr, X, AX, rr)
+        self.subtract(B, AX, dinv, mask, R, rr, rz)
+
+
+def _kernels(lanes: int, dtype) -> _Kernels:
+    key = (lanes, np.dtype(dtype).name)
+    if key not in _KERNELS:
+        _KERNELS[key] = _Kernels(lanes, ti.f64 if np.dtype(dtype) == np.float64 else ti.f32)
+    return _KERNELS[key]
+
+
+@ti.kernel
+def _first_asymmetry(S: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                     nbr: ti.types.ndarray(dtype=ti.i32, ndim=1), rtol: ti.f64,
+                     found: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+    """found[0] = the first flat index f = i*27 + o whose link j = nbr[i,o] has no link back
+    (nbr[j, 26-o] != i); found[1] = the first f with |S[i,o] - S[j,26-o]| > rtol * max(Q_ii,
+    Q_jj). Entries stay as given (N*27) where there is none. nbr must hold indices in
+    [-1, N). Integer atomic_min only: deterministic."""
+    n = nbr.shape[0] // STENCIL
+    for f in range(n * STENCIL):
+        i = f // STENCIL
+        j = nbr[f]
+        if j >= 0:
+            back = j * STENCIL + (STENCIL - 1) - (f - i * STENCIL)
+            if nbr[back] != i:
+                ti.atomic_min(found[0], ti.cast(f, ti.i64))
+            elif ti.abs(ti.cast(S[f], ti.f64) - ti.cast(S[back], ti.f64)) > rtol * ti.max(
+                    ti.cast(S[i * STENCIL + CENTER], ti.f64),
+                    ti.cast(S[j * STENCIL + CENTER], ti.f64)):
+                ti.atomic_min(found[1], ti.cast(f, ti.i64))
+
+
+# -- input checks ----------------------------------------------------------------------------
+
+def _numpy(a, name: str) -> np.ndarray:
+    """numpy view of a numpy array or a Taichi ndarray (copied)."""
+    if isinstance(a, ti.Ndarray):
+        return a.to_numpy()
+    if not isinstance(a, np.ndarray):
+        raise TypeError(f"{name} must be a numpy array or a Taichi ndarray, got {type(a).__name__}")
+    return a
+
+
+def _stencil_arrays(S, nbr) -> tuple:
+    """(S float32, nbr int32), C-contiguous, with shape and dtype checked (cheap checks only)."""
+    S, nbr = _numpy(S, "S"), _numpy(nbr, "nbr")
+    if S.ndim != 2 or S.shape[1] != STENCIL or S.shape[0] == 0:
+        raise ValueError(f"S must have shape (N, 27) with N >= 1, got {S.shape}")
+    if nbr.shape != S.shape:
+        raise ValueError(f"nbr must have the shape of S {S.shape}, got {nbr.shape}")
+    if not np.issubdtype(S.dtype, np.floating):
+        raise TypeError(f"S must be a float array, got {S.dtype}")
+    if not np.issubdtype(nbr.dtype, np.integer):
+        raise TypeError(f"nbr must be an integer array, got {nbr.dtype}")
+    if nbr.dtype != np.int32 and nbr.size and (nbr.min() < -1 or nbr.max() >= S.shape[0]):
+        raise ValueError(f"nbr holds indices outside [-1, {S.shape[0]})")
+    return np.ascontiguousarray(S, dtype=np.float32), np.ascontiguousarray(nbr, dtype=np.int32)
+
+
+def check_stencil(S, nbr, rtol: float = 1e-5) -> tuple:
+    """Validate a band's stencil; return ``(S, nbr)`` as C-contiguous float32 / int32.
+
+    Checks (each failure raises ValueError naming the first offending band index and
+    offset): shapes (N, 27); S finite; ``-1 <= nbr < N``; ``nbr[i, 13] == i``; the neighbour
+    table is symmetric (``nbr[nbr[i,o], 26-o] == i``); S is symmetric
+    (``|S[i,o] - S[nbr[i,o], 26-o]| <= rtol * max(S[i,13], S[j,13])``, exact for the band
+    producers' fixed-point assembly); the diagonal ``S[:, 13]`` is positive. S must be
+    finite everywhere, also where ``nbr = -1`` (those coefficients multiply the zero pad row).
+    The symmetry checks are one Taichi pass (:func:`_first_asymmetry`); the whole check costs
+    about three stencil products.
+    """
+    S, nbr = _stencil_arrays(S, nbr)
+    n = S.shape[0]
+    finite = np.isfinite(S).all(axis=1)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
+        raise ValueError(f"S has non-finite values (first at band index {i})")
+    low, high = int(nbr.min()), int(nbr.max())
+    if low < -1 or high >= n:
+        raise ValueError(f"nbr holds indices outside [-1, {n}): min {low}, max {high}")
+    self_bad = nbr[:, CENTER] != np.arange(n, dtype=np.int32)
+    if self_bad.any():
+        i = int(np.flatnonzero(self_bad)[0])
+        raise ValueError(f"nbr[{i}, 13] = {nbr[i, CENTER]} must be the voxel itself ({i})")
+    diag = S[:, CENTER]
+    if not (diag > 0).all():
+        i = int(np.flatnonzero(~(diag > 0))[0])
+        raise ValueError(f"Q must be positive definite: S[{i}, 13] = Q_ii = {diag[i]} <= 0")
+    found = np.full(2, n * STENCIL, np.int64)
+    _first_asymmetry(S.reshape(-1), nbr.reshape(-1), float(rtol), found)
+    if found[0] < n * STENCIL:
+        i, o = divmod(int(found[0]), STENCIL)
+        j = int(nbr[i, o])
+        raise ValueError(f"nbr is not symmetric: nbr[{i}, {o}] = {j} but "
+                         f"nbr[{j}, {STENCIL - 1 - o}] = {nbr[j, STENCIL - 1 - o]}")
+    if found[1] < n * STENCIL:
+        i, o = divmod(int(found[1]), STENCIL)
+        j = int(nbr[i, o])
+        raise ValueError(f"S is not symmetric: S[{i}, {o}] = {S[i, o]} but "
+                         f"S[{j}, {STENCIL - 1 - o}] = {S[j, STENCIL - 1 - o]}")
+    return S, nbr
+
+
+def _block(a, n: int, name: str, dtype=None) -> np.ndarray:
+    """A (n,) or (n, K) float array, C-contiguous, of ``dtype`` (default: float32 stays
+    float32, anything else becomes float64); non-finite values rejected."""
+    a = _numpy(a, name)
+    if a.ndim not in (1, 2) or a.shape[0] != n:
+        raise ValueError(f"{name} must have shape ({n},) or ({n}, K), got {a.shape}")
+    if dtype is None:
+        dtype = np.float32 if a.dtype == np.float32 else np.float64
+    a = np.ascontiguousarray(a, dtype=dtype)
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name} has non-finite values")
+    return a
+
+
+def _column_blocks(k: int) -> list:
+    """Split K columns into ceil(K / MAX_LANES) blocks of near-equal width."""
+    n_blocks = -(-k // MAX_LANES)
+    width = -(-k // n_blocks)
+    return [(a, min(a + width, k)) for a in range(0, k, width)]
+
+
+# -- Q x -------------------------------------------------------------------------------------
+
+def _padded(X: np.ndarray, dtype) -> np.ndarray:
+    """(N+1, K) copy of X (N, K) with the zero pad row first."""
+    out = np.zeros((X.shape[0] + 1, X.shape[1]), dtype)
+    out[1:] = X
+    return out
+
+
+def apply_Q(S, nbr, x, out=None, padded: bool = False) -> np.ndarray:
+    """Matrix-free ``out = Q x``: ``out_i = sum_o S[i,o] x[nbr[i,o]]`` over ``nbr[i,o] >= 0``.
+
+    Args:
+        S: (N, 27) float32 stencil of Q, finite; nbr: (N, 27) int32 neighbour table (module
+            docstring). Only shapes and dtypes are checked here (this runs inside loops);
+            see :func:`check_stencil` for the full validation.
+        x: (N,) float32 or float64; with ``padded``, (N+1,) with x[0] = 0 and voxel i at
+            x[i+1] (the solver's layout: no copies).
+        out: optional array shaped like x, of x's dtype, written in place.
+    Returns:
+        ``out``, x's dtype; row sums accumulated in x's dtype. Deterministic (a gather).
+    """
+    x = _numpy(x, "x")
+    if x.ndim != 1:
+        raise ValueError(f"x must be one vector (1-D), got shape {x.shape}")
+    if out is not None and out.shape != x.shape:
+        raise ValueError(f"out must have shape {x.shape}, got {out.shape}")
+    y = apply_Q_batched(S, nbr, x[:, None], None if out is None else out[:, None], padded)
+    return y[:, 0] if out is None else out
+
+
+def apply_Q_batched(S, nbr, X, out=None, padded: bool = False) -> np.ndarray:
+    """``out = Q X`` for a block of K vectors stored side by side, X (N, K).
+
+    The (N, K) layout keeps the K values of one voxel in one contiguous row, so each
+    neighbour costs one SIMD load for all K vectors (a (K, N) layout measured ~4x slower per
+    vector). K > :data:`MAX_LANES` runs as several blocks.
+
+    Args:
+        S, nbr: the stencil (see :func:`apply_Q`).
+        X: (N, K) float32 or float64; with ``padded``, (N+1, K) with a zero first row and
+            voxel i in row i+1 (the solver's layout; with K <= MAX_LANES, C-contiguous
+            arrays and ``out`` given, nothing is copied).
+        out: optional array shaped like X, of X's dtype, written in place.
+    Returns:
+        ``out`` (with ``padded``, its first row 0); row sums accumulated in X's dtype.
+        Deterministic.
+    """
+    S, nbr = _stencil_arrays(S, nbr)
+    X = _numpy(X, "X")
+    n = S.shape[0]
+    rows = n + 1 if padded else n
+    if X.ndim != 2 or X.shape[0] != rows or X.shape[1] == 0:
+        raise ValueError(f"X must have shape ({rows}, K) with K >= 1, got {X.shape}")
+    if padded and X[0].any():
+        raise ValueError("a padded X must have a zero first row")
+    dtype = np.float32 if X.dtype == np.float32 else np.float64
+    if out is None:
+        out = np.empty(X.shape, dtype)
+    elif out.shape != X.shape or out.dtype != dtype:
+        raise ValueError(f"out must be a {X.shape} {np.dtype(dtype).name} array, got "
+                         f"{out.shape} {out.dtype}")
+    blocks = _column_blocks(X.shape[1])
+    for a, b in blocks:
+        if padded and len(blocks) == 1 and X.dtype == dtype and X.flags.c_contiguous \
+                and out.flags.c_contiguous:
+            Xb, Y = X, out  # the solver's layout already: no copies
+        else:
+            Xb = (np.ascontiguousarray(X[:, a:b], dtype) if padded
+                  else _padded(X[:, a:b], dtype))
+            Y = np.empty((n + 1, b - a), dtype)
+        partials = np.empty((-(-n // CHUNK), b - a))  # p·Ap, not needed here
+        _kernels(b - a, dtype).apply_dot(S.reshape(-1), nbr.reshape(-1), Xb, Y, partials)
+        Y[0] = 0
+        if Y is not out:
+            out[:, a:b] = Y if padded else Y[1:]
+    return out
+
+
+# -- PCG -------------------------------------------------------------------------------------
+
+def _pcg_block(ker: _Kernels, S, nbr, B, X, dinv, tol: float, maxiter: int) -> list:
+    """Jacobi-PCG on the columns of B from the warm start X, in place; B and X are padded
+    (N+1, L) blocks (voxel i in row i+1, row 0 zero), S and nbr flat (N*27,).
+
+    Returns one dict per column: converged, iterations, relative_residual (the true
+    ||b - Q x|| / ||b|| of the returned x), residual_history (the relative residual tested
+    at each iteration, the last entry being relative_residual), restarts, reason.
+    """
+    n, lanes = B.shape[0] - 1, B.shape[1]
+    n_chunks = -(-n // CHUNK)
+    part_a = np.zeros((n_chunks, lanes))
+    part_b = np.zeros((n_chunks, lanes))
+    R, P, AP = np.zeros_like(B), np.zeros_like(B), np.zeros_like(B)
+    b_norm = np.sqrt(np.einsum("ij,ij->j", B, B, dtype=np.float64))
+    zero_rhs = b_norm == 0
+    X[:, zero_rhs] = 0  # b = 0: the solution is x = 0
+    scale = np.where(zero_rhs, 1.0, b_norm)
+    every = np.ones(lanes, np.int32)
+
+    # r = b - Q x0 ; relative residual ||r|| / ||b||
+    ker.residual(S, nbr, B, X, dinv, every, R, AP, part_a, part_b)
+    rr, rz = part_a.sum(axis=0), part_b.sum(axis=0)
+    rel = np.sqrt(rr) / scale
+    history = [[float(v)] for v in rel]
+    status = np.where(rel <= tol, _CONVERGED, _RUNNING)
+    iterations = np.zeros(lanes, np.int64)
+    restarts = np.zeros(lanes, np.int64)
+    stalls = np.zeros(lanes, np.int64)
+    last_true = np.full(lanes, np.inf)
+    reasons = ["zero right-hand side: x = 0" if z else "" for z in zero_rhs]
+    # p = M^-1 r
+    ker.update_p(np.zeros(lanes), every, R, dinv, P)
+    it = 0
+    while it < maxiter and (status == _RUNNING).any():
+        it += 1
+        active = status == _RUNNING
+        # Ap = Q p ; pAp = p·Ap
+        ker.apply_dot(S, nbr, P, AP, part_a)
+        pap = part_a.sum(axis=0)
+        broken = active & ~(np.isfinite(pap) & (pap > 0))
+        for k in np.flatnonzero(broken):
+            reasons[k] = (f"breakdown at iteration {it}: p·Ap = {pap[k]:.3g} (Q is not "
+                          f"positive definite, or values overflowed)")
+        status[broken] = _BREAKDOWN
+        active &= ~broken
+        if not active.any():
+            break
+        # alpha = rz / pAp
+        alpha = np.where(active, rz / np.where(active, pap, 1.0), 0.0)
+        # x = x + alpha p ; r = r - alpha Ap ; rr = r·r ; rz_new = r·M^-1 r
+        ker.update_xr(alpha, active.astype(np.int32), X, R, P, AP, dinv, part_a, part_b)
+        rr, rz_new = part_a.sum(axis=0), part_b.sum(axis=0)
+        iterations[active] += 1
+        rel = np.sqrt(rr) / scale
+        for k in np.flatnonzero(active):
+            history[k].append(float(rel[k]))
+        # converged? test the same norm on the true residual r = b - Q x
+        candidates = active & (rel <= tol)
+        restart = np.zeros(lanes, bool)
+        if candidates.any():
+            ker.residual(S, nbr, B, X, dinv, candidates.astype(np.int32), R, AP, part_a,
+                         part_b)
+            true_rel = np.sqrt(part_a.sum(axis=0)) / scale
+            rz_new = np.where(candidates, part_b.sum(axis=0), rz_new)
+            for k in np.flatnonzero(candidates):
+                history[k][-1] = float(true_rel[k])
+            done = candidates & (true_rel <= tol)
+            status[done] = _CONVERGED
+            restart = candidates & ~done  # recursive residual drifted: restart from the true one
+            restarts[restart] += 1
+            stalls[restart] = np.where(true_rel >= 0.9 * last_true, stalls + 1, 0)[restart]
+            last_true[restart] = true_rel[restart]
+            stuck = restart & (stalls >= _STALLS)
+            for k in np.flatnonzero(stuck):
+                reasons[k] = (f"stagnated at relative residual {true_rel[k]:.3g} > tol = {tol:g}: "
+                              f"the true residual stopped decreasing (tol below what the "
+                              f"precision of Q and of the vectors resolves)")
+            status[stuck] = _STAGNATED
+            active &= ~(done | stuck)
+        # beta = rz_new / rz (0 on a restart) ; p = M^-1 r + beta p
+        beta = np.where(active & ~restart, rz_new / np.where(active, rz, 1.0), 0.0)
+        ker.update_p(beta, active.astype(np.int32), R, dinv, P)
+        rz = rz_new
+
+    # Columns that stopped without converging: report the true residual of the returned x.
+    unfinished = status != _CONVERGED
+    if unfinished.any():
+        ker.residual(S, nbr, B, X, dinv, unfinished.astype(np.int32), R, AP, part_a,
+                     part_b)
+        true_rel = np.sqrt(part_a.sum(axis=0)) / scale
+        for k in np.flatnonzero(unfinished):
+            history[k][-1] = float(true_rel[k])
+            if status[k] == _RUNNING:
+                reasons[k] = f"not converged after maxiter = {maxiter} iterations"
+    for k in np.flatnonzero(status == _CONVERGED):
+        if not reasons[k]:
+            reasons[k] = f"converged: relative residual <= tol = {tol:g}"
+    return [dict(converged=bool(status[k] == _CONVERGED), iterations=int(iterations[k]),
+                 relative_residual=history[k][-1], residual_history=history[k],
+                 restarts=int(restarts[k]), reason=reasons[k]) for k in range(lanes)]
+
+
+def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
+                dtype=np.float32, check: bool = True) -> tuple:
+    """Solve ``Q X = B`` for K right-hand sides at once (Jacobi-preconditioned CG).
+
+    Every column has its own alpha and beta; all columns advance in the same kernels each
+    iteration (one stencil pass per iteration for the whole block), a converged column is
+    frozen, and the loop stops when every column has converged, broken down, stagnated or
+    reached ``maxiter``. Convergence: ``||b - Q x||_2 / ||b||_2 <= tol`` on the true residual
+    (module docstring).
+
+    Args:
+        S, nbr: the stencil (module docstring), validated by :func:`check_stencil` unless
+            ``check`` is False (the caller already did).
+        B: (N, K) right-hand sides.
+        X0: (N, K) warm start (default 0).
+        tol: relative residual target.
+        maxiter: iteration cap per column.
+        dtype: vector storage, np.float32 (probes; half the memory traffic) or np.float64.
+    Returns:
+        ``(X, info)``: X (N, K) of ``dtype``; info = dict(converged: bool (all columns),
+        iterations: list[int] per column, relative_residuals: list[float] per column,
+        n_not_converged: int, columns: list of per-column dicts as in :func:`pcg`).
+        Deterministic.
+    """
+    S, nbr = check_stencil(S, nbr) if check else _stencil_arrays(S, nbr)
+    n = S.shape[0]
+    if np.dtype(dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    if tol <= 0 or maxiter < 0:
+        raise ValueError(f"need tol > 0 and maxiter >= 0, got tol={tol}, maxiter={maxiter}")
+    B = _block(B, n, "B")
+    if B.ndim != 2 or B.shape[1] == 0:
+        raise ValueError(f"B must have shape ({n}, K) with K >= 1, got {B.shape}")
+    X0 = None if X0 is None else _block(X0, n, "X0")
+    if X0 is not None and X0.shape != B.shape:
+        raise ValueError(f"X0 must have the shape of B {B.shape}, got {X0.shape}")
+    dinv = 1.0 / S[:, CENTER].astype(np.float64)
+    X = np.empty(B.shape, dtype)
+    columns = []
+    for a, b in _column_blocks(B.shape[1]):
+        Xb = np.zeros((n + 1, b - a), dtype) if X0 is None else _padded(X0[:, a:b], dtype)
+        columns += _pcg_block(_kernels(b - a, dtype), S.reshape(-1), nbr.reshape(-1),
+                              _padded(B[:, a:b], dtype), Xb, dinv, tol, maxiter)
+        X[:, a:b] = Xb[1:]
+    n_bad = sum(not c["converged"] for c in columns)
+    return X, dict(converged=n_bad == 0, iterations=[c["iterations"] for c in columns],
+                   relative_residuals=[c["relative_residual"] for c in columns],
+                   n_not_converged=n_bad, columns=columns)
+
+
+def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000) -> tuple:
+    """MAP solve ``Q mu = h`` by Jacobi-preconditioned CG (M = diag Q = S[:, 13]).
+
+    Args:
+        S: (N, 27) float32 stencil of the posterior precision; nbr: (N, 27) int32 (module
+            docstring); validated by :func:`check_stencil`.
+        h: (N,) right-hand side A^T W y + b0 (float32 or float64).
+        x0: (N,) warm start, e.g. the bootstrap TSDF in metres (default 0).
+        tol: target of the relative residual ``||h - Q x||_2 / ||h||_2`` (the solution's
+            relative error is at most cond(Q) * tol). The default 1e-6 is ~10x the float32
+            rounding of the assembled S and h, so tighter targets refine nothing real.
+        maxiter: iteration cap.
+    Returns:
+        ``(x, info)``: x (N,) float64 (the solver works in float64; casting to float32 for
+        storage moves each value by at most half an ulp); info = dict(converged,
+        iterations, relative_residual, residual_history, restarts, reason).
+        ``relative_residual`` is ``||h - Q x|| / ||h||`` of the returned x, recomputed at
+        the end; the loop stops on exactly this quantity. ``converged`` is False if maxiter
+        was reached, CG broke down (p·Ap <= 0 or non-finite: Q not positive definite) or
+        stagnated (restarts no longer reduce the true residual); ``reason`` says which.
+        h = 0 returns x = 0 with relative_residual 0.
+        Deterministic: the same inputs give bitwise identical x and info.
+    """
+    S, nbr = check_stencil(S, nbr)
+    n = S.shape[0]
+    h = _block(h, n, "h", np.float64)
+    if h.ndim != 1:
+        raise ValueError(f"h must have shape ({n},), got {h.shape}")
+    x0 = None if x0 is None else _block(x0, n, "x0", np.float64)
+    if x0 is not None and x0.ndim != 1:
+        raise ValueError(f"x0 must have shape ({n},), got {x0.shape}")
+    X, info = pcg_batched(S, nbr, h[:, None], None if x0 is None else x0[:, None], tol,
+                          maxiter, np.float64, check=False)
+    return X[:, 0], info["columns"][0]
+
+
+# -- probe variance --------------------------------------------------------------------------
+
+_LATTICES = {}
+
+
+def coloring_lattice(n_colors: int) -> tuple:
+    """The lattice colouring with K = ``n_colors`` colours used by the ``coloring`` probes.
+
+    Voxel (i, j, k) gets colour ``(i + a j + b k) mod K``. The voxels of one colour form a
+    sublattice of Z^3; (a, b) is chosen by exhaustive search over [0, K)^2 so that its
+    shortest vector (the closest two voxels of one colour) is as long as possible, ties
+    broken by fewest shortest vectors, then smallest (a, b). For K = 8, 16, 27, 32, 64 the
+    closest same-colour voxels are 2.0, 2.45, 3.0, 3.32, 4.24 voxels apart (the cubic
+    colouring (i mod p, j mod p, k mod p) reaches p = 2, 2, 3, 3, 4 with K >= p^3 probes).
+
+    Returns ``(a, b, d2)``, d2 the squared length of the shortest same-colour offset.
+    """
+    k = int(n_colors)
+    if k < 1:
+        raise ValueError(f"need at least one colour, got {k}")
+    if k not in _LATTICES:
+        if k == 1:
+            _LATTICES[k] = (0, 0, 1)
+        else:
+            # Minkowski: every index-K sublattice has a vector with |v|_inf <= K^(1/3), so
+            # its shortest vector has |v|_2 <= sqrt(3) K^(1/3): the box holds it.
+            r = int(np.ceil(np.sqrt(3.0) * k ** (1.0 / 3.0)))
+            g = np.arange(-r, r + 1)
+            v = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+            v = v[(v != 0).any(axis=1)]
+            d2 = (v ** 2).sum(axis=1)
+            b = np.arange(k)
+            best = None
+            for a in range(k):  # candidates (a, 0..K-1) at a time: memory ~ V * K
+                same = (v[:, :1] + a * v[:, 1:2] + v[:, 2:] * b) % k == 0  # (V, K)
+                shortest = np.where(same, d2[:, None], np.iinfo(np.int64).max).min(axis=0)
+                count = (same & (d2[:, None] == shortest)).sum(axis=0)
+                j = np.lexsort((b, count, -shortest))[0]
+                key = (-int(shortest[j]), int(count[j]))
+                if best is None or key < best[0]:
+                    best = (key, (a, int(j), int(shortest[j])))
+            _LATTICES[k] = best[1]
+    return _LATTICES[k]
+
+
+def probe_vectors(n: int, n_probes: int, seed: int = 0, method: str = "rademacher",
+                  ijk=None) -> np.ndarray:
+    """The K probe vectors Z (N, K) float32 of :func:`probe_variance`.
+
+    ``rademacher``: independent random signs (+-1), the paper's estimator. The estimate of
+    diag(Q^-1)_i then carries the error ``sum_{j != i} Q^-1_ij z_i z_j`` over every voxel j.
+    ``coloring``: probe q is the indicator of colour q of :func:`coloring_lattice` (K)
+    times random signs, so every voxel is in exactly one probe and the error only sums over
+    the voxels of the same colour, all at least sqrt(d2) voxels away, where Q^-1_ij has
+    decayed (posterior correlations of neighbouring voxels reach 0.3, two voxels apart 0.07,
+    three 0.02 on a fused sphere). Needs ``ijk`` (N, 3).
+
+    Signs come from ``numpy.random.default_rng(seed)``: the same seed gives the same Z.
+    """
+    if n_probes < 1:
+        raise ValueError(f"n_probes must be >= 1, got {n_probes}")
+    signs = np.random.default_rng(seed).integers(0, 2, size=(n, n_probes), dtype=np.int8)
+    Z = (2 * signs - 1).astype(np.float32)
+    if method == "rademacher":
+        return Z
+    if method != "coloring":
+        raise ValueError(f"unknown probe method {method!r}; use 'rademacher' or 'coloring'")
+    if ijk is None:
+        raise ValueError("method='coloring' needs the band voxels ijk (N, 3)")
+    ijk = np.asarray(_numpy(ijk, "ijk"))
+    if ijk.shape != (n, 3) or not np.issubdtype(ijk.dtype, np.integer):
+        raise ValueError(f"ijk must be an integer array of shape ({n}, 3), got {ijk.shape} "
+                         f"{ijk.dtype}")
+    a, b, _ = coloring_lattice(n_probes)
+    ijk = ijk.astype(np.int64)
+    color = (ijk[:, 0] + a * ijk[:, 1] + b * ijk[:, 2]) % n_probes
+    Z *= color[:, None] == np.arange(n_probes)[None, :]
+    return Z
+
+
+def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, method: str = "rademacher",
+                   tol: float = 1e-4, maxiter: int = 1000, ijk=None) -> tuple:
+    """Stochastic estimate of the posterior variance ``s ~= diag(Q^-1)`` (DESIGN.md 3.6).
+
+    ``s = sum_k z_k * u_k / sum_k z_k * z_k`` (elementwise) with ``Q u_k = z_k``, the K
+    probes z_k from :func:`probe_vectors` (``method`` = ``rademacher`` | ``coloring``; the
+    colouring needs ``ijk``), solved as one batched multi-RHS PCG (:func:`pcg_batched`,
+    float32 vectors, blocks of up to :data:`MAX_LANES` probes).
+
+    Args:
+        S, nbr: the stencil (module docstring), validated by :func:`check_stencil`.
+        n_probes: K.
+        seed: seed of the probe signs.
+        tol: relative residual per probe. 1e-4 keeps the solver's share of the error in s
+            near 1e-5 (median), far below the sampling error even at K = 64 (measured on
+            tools/bench_core.py's problems: tol 1e-3 / 1e-4 / 1e-6 change s by 1e-4 / 1e-5 /
+            1e-7 at 25 % / 35 % more iterations per step).
+        maxiter: iteration cap per probe.
+        ijk: (N, 3) band voxels (``coloring`` only).
+    Returns:
+        ``(s, info)``: s (N,) float32 (m^2 when Q is in 1/m^2); info = dict(method,
+        n_probes, lattice ((1, a, b) of the colouring, else None), converged (all probes),
+        n_not_converged, iterations (per probe), relative_residuals (per probe),
+        n_nonpositive (voxels with s <= 0, possible with few Rademacher probes)).
+        Deterministic: the same seed gives bitwise identical s.
+    """
+    S, nbr = check_stencil(S, nbr)
+    n = S.shape[0]
+    Z = probe_vectors(n, n_probes, seed, method, ijk)
+    U, solve = pcg_batched(S, nbr, Z, None, tol, maxiter, np.float32, check=False)
+    num = np.einsum("ij,ij->i", Z, U, dtype=np.float64)
+    den = np.einsum("ij,ij->i", Z, Z, dtype=np.float64)
+    s = (num / den).astype(np.float32)
+    lattice = None
+    if method == "coloring":
+        lattice = [1, *coloring_lattice(n_probes)[:2]]
+    info = dict(method=method, n_probes=int(n_probes), lattice=lattice,
+                converged=solve["converged"], n_not_converged=solve["n_not_converged"],
+                iterations=solve["iterations"], relative_residuals=solve["relative_residuals"],
+                n_nonpositive=int(np.count_nonzero(~(s > 0))))
+    return s, info

@@ -1,0 +1,106 @@
+"""The probabilistic stage end to end: outputs, known answers, determinism, calibration sanity."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+import bftaichi as bf
+from bftaichi.io import read_mesh_ply
+from conftest import TINY_SCENE_SETS
+
+
+def _sphere_cfg(voxel: float, extra=()):
+    """Noiseless sphere r = 0.3 m seen from a Fibonacci sphere of 16 views, 96x72 pixels."""
+    return bf.load_config(None, [
+        "synthetic.mesh=sphere", "synthetic.radius_m=0.3", "synthetic.trajectory=sphere",
+        "synthetic.n_views=16", "synthetic.cam_radius_m=1.0", "synthetic.noise=none",
+        "synthetic.quantization_m=0.0", "synthetic.width=96", "synthetic.height=72",
+        "synthetic.fx=78.75", "synthetic.fy=78.75", "synthetic.cx=47.5", "synthetic.cy=35.5",
+        f"tsdf.voxel_size_m={voxel}", f"tsdf.trunc_m={2 * voxel}", "eval.n_samples=20000",
+        "observation.stride=1", *extra])
+
+
+def _plane_file(tmp_path):
+    """A 1.6 x 1.6 m square tilted 20 degrees about x, as a mesh file."""
+    plane = trimesh.creation.box(extents=[1.6, 1.6, 1e-6])
+    plane = trimesh.Trimesh(plane.vertices, plane.faces[plane.face_normals[:, 2] > 0.5])
+    plane = plane.subdivide().subdivide()
+    plane.apply_transform(trimesh.transformations.rotation_matrix(np.radians(20), [1, 0, 0]))
+    path = tmp_path / "plane.ply"
+    plane.export(path)
+    return path, plane
+
+
+def _rms_sphere(vertices):
+    return float(np.sqrt(np.mean((np.linalg.norm(vertices, axis=1) - 0.3) ** 2)))
+
+
+@pytest.mark.parametrize("voxel", [0.02, 0.03])
+def test_noiseless_sphere_posterior_at_least_as_accurate_as_tsdf(tmp_path, voxel):
+    report = bf.run(_sphere_cfg(voxel), tmp_path / "out", progress=False)
+    assert report["solver"]["map"]["converged"]
+    v_tsdf, _, _ = read_mesh_ply(tmp_path / "out" / "tsdf_mesh.ply")
+    v_post, f_post, extra = read_mesh_ply(tmp_path / "out" / "mesh.ply")
+    assert len(f_post) > 1000
+    assert _rms_sphere(v_post) <= _rms_sphere(v_tsdf) * 1.02
+    assert report["metrics"]["mesh.ply"]["chamfer_l2"] <= report["metrics"]["tsdf_mesh.ply"][
+        "chamfer_l2"] * 1.05
+    assert np.all(np.isfinite(extra["sigma"])) and np.all(extra["sigma"] > 0)
+
+
+def test_noiseless_plane_posterior_at_least_as_accurate_as_tsdf(tmp_path):
+    path, plane = _plane_file(tmp_path)
+    cfg = bf.load_config(None, [
+        f"synthetic.mesh={path}", "synthetic.trajectory=hemisphere", "synthetic.n_views=8",
+        "synthetic.min_elevation_deg=50", "synthetic.cam_radius_m=1.2", "synthetic.noise=none",
+        "synthetic.quantization_m=0.0", "synthetic.width=96", "synthetic.height=72",
+        "synthetic.fx=78.75", "synthetic.fy=78.75", "synthetic.cx=47.5", "synthetic.cy=35.5",
+        "tsdf.voxel_size_m=0.02", "tsdf.trunc_m=0.04", "eval.n_samples=20000",
+        "observation.stride=1"])
+    bf.run(cfg, tmp_path / "out", progress=False)
+    n = plane.face_normals[0]
+    p0 = plane.vertices[0]
+
+    def rms(vertices):
+        return float(np.sqrt(np.mean(((vertices - p0) @ n) ** 2)))
+
+    v_tsdf, _, _ = read_mesh_ply(tmp_path / "out" / "tsdf_mesh.ply")
+    v_post, _, _ = read_mesh_ply(tmp_path / "out" / "mesh.ply")
+    assert rms(v_post) <= rms(v_tsdf) * 1.02 + 1e-4
+
+
+def test_full_run_writes_the_documented_outputs(tmp_path):
+    cfg = bf.load_config(None, list(TINY_SCENE_SETS))
+    report = bf.run(cfg, tmp_path, progress=False)
+    band = np.load(tmp_path / "band.npz")
+    n = len(band["ijk"])
+    assert n == report["counts"]["band_voxels"] > 0
+    for key in ("mean", "var", "tsdf", "weight"):
+        assert band[key].shape == (n,) and band[key].dtype == np.float32, key
+    assert np.all(band["var"] > 0)
+    v, f, extra = read_mesh_ply(tmp_path / "mesh.ply")
+    assert set(extra) == {"sigma"} and len(extra["sigma"]) == len(v) and len(f) > 0
+    saved = json.loads((tmp_path / "report.json").read_text())
+    assert set(saved["metrics"]) == {"tsdf_mesh.ply", "mesh.ply"}
+    assert saved["solver"]["map"]["converged"] is True
+    assert saved["solver"]["variance"]["n_probes"] == cfg.solver.probes
+
+
+def test_tsdf_only_stage_skips_the_posterior(tmp_path):
+    cfg = bf.load_config(None, [*TINY_SCENE_SETS, "run.stages=tsdf_only"])
+    report = bf.run(cfg, tmp_path, progress=False)
+    assert not (tmp_path / "mesh.ply").exists()
+    assert "posterior" not in report["stages_run"] and report["solver"] is None
+    assert set(np.load(tmp_path / "band.npz").files) == {"ijk", "voxel_size", "tsdf", "weight"}
+
+
+def test_same_seed_gives_identical_band_arrays(tmp_path):
+    cfg = bf.load_config(None, list(TINY_SCENE_SETS))
+    bf.run(cfg, tmp_path / "a", progress=False)
+    bf.run(cfg, tmp_path / "b", progress=False)
+    a, b = np.load(tmp_path / "a" / "band.npz"), np.load(tmp_path / "b" / "band.npz")
+    for key in a.files:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert (tmp_path / "a" / "mesh.ply").read_bytes() == (tmp_path / "b" / "mesh.ply").read_bytes()
