@@ -25,8 +25,9 @@ def test_results_table_prints_a_markdown_row_per_scene(tmp_path):
     out = _run([TOOLS / "results_table.py", "scenes/default.toml", *sets,
                 "--json", tmp_path / "rows.json"])
     lines = [ln for ln in out.splitlines() if ln.startswith("|")]
-    assert lines[0].startswith("| scene |") and len(lines) == 3
-    assert lines[2].startswith("| default | 6 |")
+    assert lines[0].startswith("| scene |") and len(lines) == 4
+    assert lines[2].startswith("| default | 6 | 30 mm | tsdf_mesh.ply |")
+    assert lines[3].startswith("| default | 6 | 30 mm | mesh.ply |")
     assert (tmp_path / "rows.json").exists()
 
 
