@@ -48,3 +48,19 @@ def test_bench_startup_reports_cold_and_warm():
 def test_bench_tsdf_runs_on_a_few_frames():
     out = _run([TOOLS / "bench_tsdf.py", "--frames", "5", "--repeats", "1", "--voxels", "0.04"])
     assert "frames/s" in out
+
+
+def test_calibration_reports_coverage_and_rank_correlation():
+    out = _run([TOOLS / "calibration.py", "--set", "synthetic.n_views=6", "--set",
+                "synthetic.width=96", "--set", "synthetic.height=72", "--set", "synthetic.fx=78.75",
+                "--set", "synthetic.fy=78.75", "--set", "synthetic.cx=47.5", "--set",
+                "synthetic.cy=35.5", "--set", "tsdf.voxel_size_m=0.03", "--set", "tsdf.trunc_m=0.06"])
+    assert "coverage |e| <= 1/2/3 sigma" in out and "Spearman(sigma, |e|)" in out
+
+
+def test_reproduce_paper_prints_the_three_rows(tmp_path):
+    out = _run([TOOLS / "reproduce_paper.py", "--set", "synthetic.n_views=4",
+                "--markdown", tmp_path / "t.md"])
+    for row in ("TSDF bootstrap", "BayesFusion-SDF, no anchor", "BayesFusion-SDF + anchor"):
+        assert f"| {row} |" in out
+    assert (tmp_path / "t.md").read_text().startswith("| method |")
