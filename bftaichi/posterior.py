@@ -130,6 +130,11 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None) -> Poste
     var, vinfo = probe_variance(S, band["nbr"], n_probes=s.probes, seed=s.seed,
                                 method=s.probe_method, tol=s.probe_tol, maxiter=s.maxiter,
                                 ijk=band["ijk"])
+    # The probe estimate can dip below the conditional variance 1/Q_ii (or below 0) where few
+    # probes average out; the marginal variance is never smaller than 1/Q_ii, so floor it there.
+    floor = (1.0 / S[:, 13].astype(np.float64)).astype(np.float32)
+    vinfo = dict(vinfo, n_floored=int(np.count_nonzero(var < floor)))
+    var = np.maximum(var, floor)
     lap("variance")
     solver = {k: info[k] for k in ("converged", "iterations", "relative_residual")}
     if "reason" in info:
