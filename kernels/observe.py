@@ -92,7 +92,8 @@ P_VAR_EXTRA = 30  # sigma_pose^2 + sigma_model^2, metres^2
 P_RADIUS = 31  # normal tangent offset r, pixels
 P_JUMP = 32  # tan(normal_max_slope): neighbour depth jump limit is r D tan / f
 P_SCALE = 33  # fixed-point units per unit of S / h
-N_PARAMS = 34
+P_SHARE = 34  # most samples of one pixel that share a depth error in one voxel's estimate
+N_PARAMS = 35
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -338,7 +339,7 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                         else:
                             n_drop += 1
                 if n_acc > 0 or to_rows:
-                    w = inv_var / ti.cast(ti.max(n_acc, 1), ti.f64)
+                    w = inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64), prm[P_SHARE])
                     ws = w * scale
                     for j in range(-m, m + 1):
                         delta = ti.cast(j, ti.f64) * spacing
@@ -498,10 +499,20 @@ class Observer:
                  voxel_size: float, trunc_m: float, *, spacing_m: float | None = None,
                  depth_a_m: float = 0.0012, depth_b: float = 0.0019, depth_z0_m: float = 0.4,
                  cos_min: float = 0.3, sigma_pose_m: float = 0.0, sigma_model_m: float = 0.001,
-                 normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0):
+                 normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0,
+                 count_once: str = "pixel"):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
+        if count_once not in ("pixel", "voxel"):
+            raise ValueError(f"Observer: count_once = {count_once!r} is not 'pixel' or 'voxel'")
+        # "pixel": the n_acc samples of a pixel share its 1/sigma^2 (w = 1 / (n_acc sigma^2)).
+        # "voxel": each voxel gets about one pixel's information: only the samples in the two
+        # cells around a voxel along the ray (ceil(2 voxel / spacing) of them) share the depth
+        # error there, so w = 1 / (min(n_acc, share) sigma^2).
+        self.count_once = count_once
+        self.share = (float(math.ceil(2.0 * self.voxel_size / self.spacing_m - 1e-9))
+                      if count_once == "voxel" else 1e30)
         values = {"voxel_size": self.voxel_size, "trunc_m": self.trunc_m,
                   "spacing_m": self.spacing_m, "cos_min": cos_min,
                   "normal_max_slope_deg": normal_max_slope_deg}
@@ -590,6 +601,7 @@ class Observer:
         prm[P_RADIUS] = self.normal_radius_px
         prm[P_JUMP] = math.tan(math.radians(self.normal_max_slope_deg))
         prm[P_SCALE] = self.fixed_scale
+        prm[P_SHARE] = self.share
         return depth, prm
 
     def _scratch(self, n_rows: int) -> tuple:

@@ -254,6 +254,22 @@ def test_each_pixel_counts_its_information_once(box):
     np.testing.assert_allclose(S.astype(np.float64).sum(), total_info, rtol=1e-5)
 
 
+def test_count_once_per_voxel_shares_a_pixel_among_at_most_two_samples(box):
+    """count_once="voxel": a pixel's samples get 1 / (min(n_acc, ceil(2 voxel / spacing)) sigma^2)
+    instead of 1 / (n_acc sigma^2), i.e. w_voxel / w_pixel = n_acc / min(n_acc, 2) at 1-voxel
+    spacing; rows, values and everything else are unchanged."""
+    band, frames = box
+    frame = frames[0]
+    per_pixel = band.observer().frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+    per_voxel = band.observer(count_once="voxel").frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+    np.testing.assert_array_equal(per_voxel["idx"], per_pixel["idx"])
+    np.testing.assert_array_equal(per_voxel["y"], per_pixel["y"])
+    _, inverse, n_acc = np.unique(per_pixel["pixel"], return_inverse=True, return_counts=True)
+    n = n_acc[inverse].astype(np.float64)
+    assert (n > 2).any()
+    np.testing.assert_allclose(per_voxel["w"] / per_pixel["w"], n / np.minimum(n, 2), rtol=1e-12)
+
+
 def test_accumulation_is_deterministic_and_order_free(sphere):
     """(e) The same frames give bitwise identical S and h, run twice or in reverse order."""
     band, frames = sphere
