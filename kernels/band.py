@@ -45,7 +45,7 @@ dilation's concurrent writes all store the same value into a cell no thread of t
 import numpy as np
 import taichi as ti
 
-from .lookup import BLOCK, KEY_BIAS, block_key, block_key_np
+from .lookup import BLOCK, KEY_BIAS, block_key, block_key_np, find_block
 
 BLOCK_VOXELS = BLOCK ** 3
 MAX_DILATION = BLOCK - 1  # candidate blocks reach 8 voxels past a core voxel; the fill reads d+1
@@ -74,22 +74,6 @@ def stencil_offsets(kind: int) -> tuple[list[int], list[float]]:
 
 
 # -- kernels ---------------------------------------------------------------------------------
-
-@ti.func
-def _find_block(keys: ti.template(), key: ti.i64) -> ti.i32:
-    """Slot of ``key`` in the sorted block keys, or -1 (binary search, read only)."""
-    lo, hi = 0, keys.shape[0]
-    while lo < hi:  # first position with keys[pos] >= key
-        mid = (lo + hi) // 2
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    out = -1
-    if lo < keys.shape[0] and keys[lo] == key:
-        out = lo
-    return out
-
 
 @ti.func
 def _neighbour_cell(block_nbr: ti.template(), c: ti.i32, o: ti.template()) -> ti.i32:
@@ -125,7 +109,7 @@ def _scatter_input(ijk: ti.types.ndarray(dtype=ti.i32, ndim=2),
     for n in range(ijk.shape[0]):
         i, j, k = ijk[n, 0], ijk[n, 1], ijk[n, 2]
         bi, bj, bk = i // BLOCK, j // BLOCK, k // BLOCK  # Taichi's // floors negative ints
-        slot = _find_block(block_keys, block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64),
+        slot = find_block(block_keys, block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64),
                                                  ti.cast(bk, ti.i64)))
         if slot >= 0:
             c = (slot * BLOCK_VOXELS + (i - bi * BLOCK) * 64 + (j - bj * BLOCK) * 8

@@ -41,20 +41,30 @@ def block_key(bi: ti.i64, bj: ti.i64, bk: ti.i64) -> ti.i64:
 
 
 @ti.func
+def find_block(keys: ti.template(), key: ti.i64) -> ti.i32:
+    """Row of ``key`` in the sorted block keys, or -1 (binary search, read only)."""
+    lo, hi = 0, keys.shape[0]
+    while lo < hi:  # first position with keys[pos] >= key
+        mid = (lo + hi) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    out = -1
+    if lo < keys.shape[0] and keys[lo] == key:
+        out = lo
+    return out
+
+
+@ti.func
 def band_index(block_keys: ti.template(), block_table: ti.template(), i: ti.i32, j: ti.i32,
                k: ti.i32) -> ti.i32:
     """Band index of voxel (i, j, k), or -1. ``block_keys``/``block_table`` are ndarray kernel
     arguments as described in the module docstring. Deterministic (read only)."""
     bi, bj, bk = i // BLOCK, j // BLOCK, k // BLOCK  # Taichi's // floors for negative ints
-    key = block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64), ti.cast(bk, ti.i64))
-    lo, hi = 0, block_keys.shape[0]
-    while lo < hi:  # first position with block_keys[pos] >= key
-        mid = (lo + hi) // 2
-        if block_keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
+    row = find_block(block_keys, block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64),
+                                           ti.cast(bk, ti.i64)))
     out = -1
-    if lo < block_keys.shape[0] and block_keys[lo] == key:
-        out = block_table[lo, (i - bi * BLOCK) * 64 + (j - bj * BLOCK) * 8 + (k - bk * BLOCK)]
+    if row >= 0:
+        out = block_table[row, (i - bi * BLOCK) * 64 + (j - bj * BLOCK) * 8 + (k - bk * BLOCK)]
     return out

@@ -71,7 +71,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from .lookup import BLOCK, KEY_BIAS, band_index, block_key
+from .lookup import BLOCK, KEY_BIAS, band_index, block_key, find_block
 from .tsdf import _floor_i32
 
 FRACTION_BITS = 32  # one maximal-weight contribution = 2^32 fixed-point units
@@ -192,19 +192,9 @@ def _pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32
 
 @ti.func
 def _block_row(block_keys: ti.template(), bi: ti.i32, bj: ti.i32, bk: ti.i32) -> ti.i32:
-    """Row of block (bi, bj, bk) in the block table, or -1 (binary search, as in band_index)."""
-    key = block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64), ti.cast(bk, ti.i64))
-    lo, hi = 0, block_keys.shape[0]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if block_keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    row = -1
-    if lo < block_keys.shape[0] and block_keys[lo] == key:
-        row = lo
-    return row
+    """Row of block (bi, bj, bk) in the block table, or -1."""
+    return find_block(block_keys, block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64),
+                                            ti.cast(bk, ti.i64)))
 
 
 @ti.func

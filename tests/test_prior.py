@@ -152,8 +152,10 @@ def test_float64_rhs_and_taichi_ndarrays(band):
 
 
 def test_empty_band_is_a_no_op():
-    add_prior(np.zeros((0, 27), np.float32), np.zeros(0, np.float32), np.zeros((0, 27), np.int32),
-              np.zeros(0, np.float32), np.zeros(0, np.float32), lam=1.0, lam_b=1.0, eps=0.0)
+    S, b0 = np.zeros((0, 27), np.float32), np.zeros(0, np.float32)
+    out = add_prior(S, b0, np.zeros((0, 27), np.int32), np.zeros(0, np.float32),
+                    np.zeros(0, np.float32), lam=1.0, lam_b=1.0, eps=0.0)
+    assert out is None and S.shape == (0, 27) and b0.shape == (0,)
 
 
 @pytest.mark.parametrize("bad", ["anchors", "stencil", "lam", "shape", "dtype", "ti_dtype"])
