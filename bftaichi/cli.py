@@ -68,6 +68,13 @@ def _print_summary(report: dict, out: Path) -> None:
     if report["metrics"]:
         click.echo("metrics vs ground truth:")
         click.echo(format_table(report["metrics"]))
+        u = report.get("uncertainty")
+        if u:
+            click.echo(f"sigma vs true error ({u['n']:,} observed voxels within "
+                       f"{u['near_voxels']:g} voxel of the surface): coverage of |e| <= 1/2/3 "
+                       f"sigma {u['coverage@1sigma']:.1%} / {u['coverage@2sigma']:.1%} / "
+                       f"{u['coverage@3sigma']:.1%} (Gaussian 68.3 / 95.4 / 99.7 %), "
+                       f"Spearman {u['spearman']:.2f}")
     else:
         click.echo("no ground-truth mesh: geometry metrics skipped")
     click.echo(f"outputs in {out}/")

@@ -25,7 +25,7 @@ from .errors import DataError, NoSurfaceError
 from .fusion import TSDFVolume
 from .io import prepare_out_dir, write_json, write_mesh_ply, write_npz
 
-__all__ = ["open_frames", "run", "load_gt_mesh"]
+__all__ = ["open_frames", "run", "load_gt_mesh", "band_uncertainty"]
 
 
 def open_frames(cfg: Config):
@@ -129,6 +129,25 @@ class _FrameReader:
                 yield frame
 
 
+def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict | None:
+    """Calibration of the posterior against the ground-truth surface (DESIGN.md section 6):
+    :func:`bftaichi.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
+    true signed distance (:func:`bftaichi.metrics.surface_sdf`, sampled every voxel / 4) over
+    the observed band voxels (bootstrap weight > 0) within ``near_voxels`` voxels of the true
+    surface. None when fewer than 2 voxels qualify."""
+    from .metrics import surface_sdf, uncertainty_metrics
+
+    vs = post.voxel_size
+    centres = (post.ijk.astype(np.float64) + 0.5) * vs
+    phi, valid = surface_sdf(gt, centres, spacing_m=vs / 4, seed=seed)
+    near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
+    if np.count_nonzero(near) < 2:
+        return None
+    out = uncertainty_metrics(post.mean[near], post.sigma[near], phi[near])
+    out["near_voxels"] = near_voxels
+    return out
+
+
 def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         progress: bool = True) -> dict:
     """Run the pipeline of ``cfg`` and write its outputs into ``out_dir``; return the report.
@@ -181,6 +200,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
             post_mesh = post.extract_mesh()
     timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
     metrics = {}
+    uncertainty = None
     if gt is not None:
         from .metrics import geometry_metrics
 
@@ -190,6 +210,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
             if post_mesh is not None:
                 metrics["mesh.ply"] = geometry_metrics(
                     post_mesh, gt, cfg.eval.thresholds_mm, cfg.eval.n_samples, cfg.eval.seed)
+                uncertainty = band_uncertainty(post, gt, cfg.eval.near_voxels, cfg.eval.seed)
     with timer("write"):
         colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None
         write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors)
@@ -229,6 +250,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m,
                  "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
         "metrics": metrics,
+        "uncertainty": uncertainty,
         "has_ground_truth": gt is not None,
         "machine": {"python": platform.python_version(), "arch": cfg.run.arch,
                     "cpus": os.cpu_count()},

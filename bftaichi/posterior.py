@@ -87,7 +87,7 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None) -> Poste
     from kernels.band import build_band
     from kernels.observe import Observer
     from kernels.pcg import pcg, probe_variance
-    from kernels.prior import add_prior
+    from kernels.prior import add_curvature_prior, add_prior
 
     seconds = {}
     t0 = time.perf_counter()
@@ -121,15 +121,18 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None) -> Poste
     add_prior(S, b0, band["nbr"], band["tsdf"], band["weight"], lam=p.lam / vs ** 2,
               lam_b=p.lam_b / vs ** 2, eps=p.eps / vs ** 2, stencil=cfg.band.stencil,
               anchors=p.anchors)
+    far = None  # Q's entries at offsets +-2 (curvature prior only)
+    if p.curvature > 0:
+        far = add_curvature_prior(S, band["nbr"], lam2=p.curvature / vs ** 2)
     h = (h_data.astype(np.float64) + b0).astype(np.float32)
     lap("prior")
 
     s = cfg.solver
-    mean, info = pcg(S, band["nbr"], h, band["x0"], tol=s.tol, maxiter=s.maxiter)
+    mean, info = pcg(S, band["nbr"], h, band["x0"], tol=s.tol, maxiter=s.maxiter, far=far)
     lap("map")
     var, vinfo = probe_variance(S, band["nbr"], n_probes=s.probes, seed=s.seed,
                                 method=s.probe_method, tol=s.probe_tol, maxiter=s.maxiter,
-                                ijk=band["ijk"])
+                                ijk=band["ijk"], far=far)
     # The probe estimate can dip below the conditional variance 1/Q_ii (or below 0) where few
     # probes average out; the marginal variance is never smaller than 1/Q_ii, so floor it there.
     floor = (1.0 / S[:, 13].astype(np.float64)).astype(np.float32)

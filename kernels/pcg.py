@@ -8,6 +8,11 @@ Layout (the band contract shared with band.py / observe.py / prior.py)::
                            o = (di+1)*9 + (dj+1)*3 + (dk+1), o = 13 is the voxel itself
     S     (N, 27) float32  Q in stencil form: (Q x)_i = sum_o S[i,o] x[nbr[i,o]] over
                            nbr[i,o] >= 0; symmetric: S[i,o] == S[nbr[i,o], 26-o]; S[i,13] = Q_ii
+    far   (S2, nbr2)       optional second-order part: S2 (N, 6) float32 and nbr2 (N, 6)
+                           int32, the entries of Q at offsets +-2 along each axis (curvature
+                           prior, kernels/prior.py): a = 2 * axis + (0 for -2, 1 for +2),
+                           (Q x)_i += sum_a S2[i,a] x[nbr2[i,a]]; symmetric: nbr2[nbr2[i,a],
+                           a ^ 1] == i and S2 equal there; nbr2 = -1 (S2 = 0) where unused
     x     (N,)             one vector (float32 or float64)
     X     (N, K)           K vectors side by side ("a block"): row i holds the K values of
                            voxel i, so a neighbour's K values are one contiguous load
@@ -60,6 +65,7 @@ import taichi as ti
 
 STENCIL = 27  # offsets {-1, 0, 1}^3
 CENTER = 13  # offset of the voxel itself: (0, 0, 0)
+FAR = 6  # optional far offsets +-2 along each axis (a = 2 * axis + (0: -2, 1: +2))
 CHUNK = 1024  # rows per reduction chunk (fixed: results do not depend on the thread count)
 MAX_LANES = 16  # widest compiled vector block (K = 16 probes are one block)
 
@@ -96,7 +102,7 @@ class _Kernels:
     SLP vectoriser); they stream memory and run at ~7 GB/s.
     """
 
-    def __init__(self, lanes: int, dtype):
+    def __init__(self, lanes: int, dtype, far: bool):
         V = ti.types.vector(lanes, dtype)
         VD = ti.types.vector(lanes, ti.f64)
         VI = ti.types.vector(lanes, ti.i32)
@@ -107,23 +113,30 @@ class _Kernels:
         diag = ti.types.ndarray(dtype=ti.f64, ndim=1)
 
         @ti.func
-        def q_row(S: ti.template(), nbr: ti.template(), X: ti.template(), i: ti.i32):
-            """(Q X)_i = sum_o S[i,o] X[nbr[i,o]]: the 27 offsets unrolled, no branch (a
-            missing neighbour, nbr = -1, reads the zero pad row), accumulated in dtype."""
+        def q_row(S: ti.template(), nbr: ti.template(), S2: ti.template(),
+                  nbr2: ti.template(), X: ti.template(), i: ti.i32):
+            """(Q X)_i = sum_o S[i,o] X[nbr[i,o]] (+ the far part): the offsets unrolled, no
+            branch (a missing neighbour, index -1, reads the zero pad row), accumulated in
+            dtype. Without ``far`` (compile time) S2 and nbr2 are never read."""
             acc = V(0.0)
             base = i * STENCIL
             for o in ti.static(range(STENCIL)):
                 acc += ti.cast(S[base + o], dtype) * X[nbr[base + o] + 1]
+            if ti.static(far):
+                base2 = i * FAR
+                for a in ti.static(range(FAR)):
+                    acc += ti.cast(S2[base2 + a], dtype) * X[nbr2[base2 + a] + 1]
             return acc
 
         @ti.kernel
-        def apply_dot(S: flat_s, nbr: flat_n, P: vec, AP: vec, pap: part):
+        def apply_dot(S: flat_s, nbr: flat_n, S2: flat_s, nbr2: flat_n, P: vec, AP: vec,
+                      pap: part):
             """AP = Q P and the chunk partials of p·Ap (float64; deterministic)."""
             n = P.shape[0] - 1
             for c in range(pap.shape[0]):
                 s = VD(0.0)
                 for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
-                    ap = q_row(S, nbr, P, i)
+                    ap = q_row(S, nbr, S2, nbr2, P, i)
                     AP[i + 1] = ap
                     s += ti.cast(P[i + 1], ti.f64) * ti.cast(ap, ti.f64)
                 pap[c] = s
@@ -184,18 +197,49 @@ class _Kernels:
         self.apply_dot, self.subtract = apply_dot, subtract
         self.update_xr, self.update_p = update_xr, update_p
 
-    def residual(self, S, nbr, B, X, dinv, mask, R, AX, rr, rz):
+    def residual(self, op, B, X, dinv, mask, R, AX, rr, rz):
         """R = B - Q X in the ``mask`` lanes (AX: scratch block), chunk partials of r·r and
-        r·M^-1 r into ``rr``, ``rz``."""
-        self.apply_dot(S, nbr, X, AX, rr)
+        r·M^-1 r into ``rr``, ``rz``. ``op`` = (S, nbr, S2, nbr2) flat."""
+        self.apply_dot(*op, X, AX, rr)
         self.subtract(B, AX, dinv, mask, R, rr, rz)
 
 
-def _kernels(lanes: int, dtype) -> _Kernels:
-    key = (lanes, np.dtype(dtype).name)
+def _kernels(lanes: int, dtype, far: bool = False) -> _Kernels:
+    key = (lanes, np.dtype(dtype).name, bool(far))
     if key not in _KERNELS:
-        _KERNELS[key] = _Kernels(lanes, ti.f64 if np.dtype(dtype) == np.float64 else ti.f32)
+        _KERNELS[key] = _Kernels(lanes, ti.f64 if np.dtype(dtype) == np.float64 else ti.f32,
+                                 bool(far))
     return _KERNELS[key]
+
+
+_NO_FAR = (np.zeros(1, np.float32), np.full(1, -1, np.int32))  # never read (far=False kernels)
+
+
+def _far_arrays(far, n: int) -> tuple | None:
+    """(S2 float32, nbr2 int32) (N, 6), C-contiguous, shapes and dtypes checked; None for
+    ``far=None``."""
+    if far is None:
+        return None
+    try:
+        S2, nbr2 = far
+    except (TypeError, ValueError):
+        raise TypeError("far must be None or a pair (S2, nbr2) of (N, 6) arrays") from None
+    S2, nbr2 = _numpy(S2, "S2"), _numpy(nbr2, "nbr2")
+    if S2.shape != (n, FAR) or nbr2.shape != (n, FAR):
+        raise ValueError(f"far (S2, nbr2) must both have shape ({n}, {FAR}), got {S2.shape} "
+                         f"and {nbr2.shape}")
+    if not np.issubdtype(S2.dtype, np.floating) or not np.issubdtype(nbr2.dtype, np.integer):
+        raise TypeError(f"far: S2 must be float and nbr2 integer, got {S2.dtype}, {nbr2.dtype}")
+    if nbr2.dtype != np.int32 and nbr2.size and (nbr2.min() < -1 or nbr2.max() >= n):
+        raise ValueError(f"nbr2 holds indices outside [-1, {n})")
+    return (np.ascontiguousarray(S2, dtype=np.float32),
+            np.ascontiguousarray(nbr2, dtype=np.int32))
+
+
+def _flat_op(S, nbr, far) -> tuple:
+    """The kernels' operator arguments (S, nbr, S2, nbr2), flat."""
+    S2, nbr2 = _NO_FAR if far is None else (far[0].reshape(-1), far[1].reshape(-1))
+    return S.reshape(-1), nbr.reshape(-1), S2, nbr2
 
 
 @ti.kernel
@@ -245,6 +289,44 @@ def _stencil_arrays(S, nbr) -> tuple:
     if nbr.dtype != np.int32 and nbr.size and (nbr.min() < -1 or nbr.max() >= S.shape[0]):
         raise ValueError(f"nbr holds indices outside [-1, {S.shape[0]})")
     return np.ascontiguousarray(S, dtype=np.float32), np.ascontiguousarray(nbr, dtype=np.int32)
+
+
+def check_far(far, S, rtol: float = 1e-5):
+    """Validate the far part (S2, nbr2) of a stencil whose near part S (N, 27) is valid;
+    return it as C-contiguous float32 / int32 arrays (None for None).
+
+    Checks: shapes (N, 6); S2 finite; ``-1 <= nbr2 < N``; ``nbr2[j, a ^ 1] == i`` for
+    ``j = nbr2[i, a] >= 0``; ``|S2[i,a] - S2[j,a^1]| <= rtol * max(S[i,13], S[j,13])``;
+    ``S2 == 0`` where ``nbr2 == -1``. Raises ValueError naming the first bad entry."""
+    n = S.shape[0]
+    far = _far_arrays(far, n)
+    if far is None:
+        return None
+    S2, nbr2 = far
+    if not np.isfinite(S2).all():
+        raise ValueError(f"S2 has non-finite values (first at band index "
+                         f"{int(np.flatnonzero(~np.isfinite(S2).all(axis=1))[0])})")
+    if nbr2.size and (nbr2.min() < -1 or nbr2.max() >= n):
+        raise ValueError(f"nbr2 holds indices outside [-1, {n})")
+    i, a = np.nonzero(nbr2 >= 0)
+    j = nbr2[i, a]
+    back = nbr2[j, a ^ 1] != i
+    if back.any():
+        k = int(np.flatnonzero(back)[0])
+        raise ValueError(f"nbr2 is not symmetric: nbr2[{i[k]}, {a[k]}] = {j[k]} but "
+                         f"nbr2[{j[k]}, {a[k] ^ 1}] = {nbr2[j[k], a[k] ^ 1]}")
+    diag = S[:, CENTER].astype(np.float64)
+    bad = np.abs(S2[i, a].astype(np.float64) - S2[j, a ^ 1]) > rtol * np.maximum(diag[i],
+                                                                                 diag[j])
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"S2 is not symmetric: S2[{i[k]}, {a[k]}] = {S2[i[k], a[k]]} but "
+                         f"S2[{j[k]}, {a[k] ^ 1}] = {S2[j[k], a[k] ^ 1]}")
+    dangling = (nbr2 < 0) & (S2 != 0)
+    if dangling.any():
+        i0, a0 = (int(v[0]) for v in np.nonzero(dangling))
+        raise ValueError(f"S2[{i0}, {a0}] = {S2[i0, a0]} but nbr2[{i0}, {a0}] = -1")
+    return S2, nbr2
 
 
 def check_stencil(S, nbr, rtol: float = 1e-5) -> tuple:
@@ -321,8 +403,9 @@ def _padded(X: np.ndarray, dtype) -> np.ndarray:
     return out
 
 
-def apply_Q(S, nbr, x, out=None, padded: bool = False) -> np.ndarray:
-    """Matrix-free ``out = Q x``: ``out_i = sum_o S[i,o] x[nbr[i,o]]`` over ``nbr[i,o] >= 0``.
+def apply_Q(S, nbr, x, out=None, padded: bool = False, far=None) -> np.ndarray:
+    """Matrix-free ``out = Q x``: ``out_i = sum_o S[i,o] x[nbr[i,o]]`` over ``nbr[i,o] >= 0``
+    (plus ``sum_a S2[i,a] x[nbr2[i,a]]`` with ``far = (S2, nbr2)``).
 
     Args:
         S: (N, 27) float32 stencil of Q, finite; nbr: (N, 27) int32 neighbour table (module
@@ -331,6 +414,7 @@ def apply_Q(S, nbr, x, out=None, padded: bool = False) -> np.ndarray:
         x: (N,) float32 or float64; with ``padded``, (N+1,) with x[0] = 0 and voxel i at
             x[i+1] (the solver's layout: no copies).
         out: optional array shaped like x, of x's dtype, written in place.
+        far: optional (S2, nbr2) (N, 6), the entries at offsets +-2 (module docstring).
     Returns:
         ``out``, x's dtype; row sums accumulated in x's dtype. Deterministic (a gather).
     """
@@ -339,11 +423,11 @@ def apply_Q(S, nbr, x, out=None, padded: bool = False) -> np.ndarray:
         raise ValueError(f"x must be one vector (1-D), got shape {x.shape}")
     if out is not None and out.shape != x.shape:
         raise ValueError(f"out must have shape {x.shape}, got {out.shape}")
-    y = apply_Q_batched(S, nbr, x[:, None], None if out is None else out[:, None], padded)
+    y = apply_Q_batched(S, nbr, x[:, None], None if out is None else out[:, None], padded, far)
     return y[:, 0] if out is None else out
 
 
-def apply_Q_batched(S, nbr, X, out=None, padded: bool = False) -> np.ndarray:
+def apply_Q_batched(S, nbr, X, out=None, padded: bool = False, far=None) -> np.ndarray:
     """``out = Q X`` for a block of K vectors stored side by side, X (N, K).
 
     The (N, K) layout keeps the K values of one voxel in one contiguous row, so each
@@ -351,7 +435,7 @@ def apply_Q_batched(S, nbr, X, out=None, padded: bool = False) -> np.ndarray:
     vector). K > :data:`MAX_LANES` runs as several blocks.
 
     Args:
-        S, nbr: the stencil (see :func:`apply_Q`).
+        S, nbr, far: the stencil (see :func:`apply_Q`).
         X: (N, K) float32 or float64; with ``padded``, (N+1, K) with a zero first row and
             voxel i in row i+1 (the solver's layout; with K <= MAX_LANES, C-contiguous
             arrays and ``out`` given, nothing is copied).
@@ -361,6 +445,8 @@ def apply_Q_batched(S, nbr, X, out=None, padded: bool = False) -> np.ndarray:
         Deterministic.
     """
     S, nbr = _stencil_arrays(S, nbr)
+    far = _far_arrays(far, S.shape[0])
+    op = _flat_op(S, nbr, far)
     X = _numpy(X, "X")
     n = S.shape[0]
     rows = n + 1 if padded else n
@@ -384,7 +470,7 @@ def apply_Q_batched(S, nbr, X, out=None, padded: bool = False) -> np.ndarray:
                   else _padded(X[:, a:b], dtype))
             Y = np.empty((n + 1, b - a), dtype)
         partials = np.empty((-(-n // CHUNK), b - a))  # p·Ap, not needed here
-        _kernels(b - a, dtype).apply_dot(S.reshape(-1), nbr.reshape(-1), Xb, Y, partials)
+        _kernels(b - a, dtype, far is not None).apply_dot(*op, Xb, Y, partials)
         Y[0] = 0
         if Y is not out:
             out[:, a:b] = Y if padded else Y[1:]
@@ -393,9 +479,9 @@ def apply_Q_batched(S, nbr, X, out=None, padded: bool = False) -> np.ndarray:
 
 # -- PCG -------------------------------------------------------------------------------------
 
-def _pcg_block(ker: _Kernels, S, nbr, B, X, dinv, tol: float, maxiter: int) -> list:
+def _pcg_block(ker: _Kernels, op, B, X, dinv, tol: float, maxiter: int) -> list:
     """Jacobi-PCG on the columns of B from the warm start X, in place; B and X are padded
-    (N+1, L) blocks (voxel i in row i+1, row 0 zero), S and nbr flat (N*27,).
+    (N+1, L) blocks (voxel i in row i+1, row 0 zero), op = (S, nbr, S2, nbr2) flat.
 
     Returns one dict per column: converged, iterations, relative_residual (the true
     ||b - Q x|| / ||b|| of the returned x), residual_history (the relative residual tested
@@ -413,7 +499,7 @@ def _pcg_block(ker: _Kernels, S, nbr, B, X, dinv, tol: float, maxiter: int) -> l
     every = np.ones(lanes, np.int32)
 
     # r = b - Q x0 ; relative residual ||r|| / ||b||
-    ker.residual(S, nbr, B, X, dinv, every, R, AP, part_a, part_b)
+    ker.residual(op, B, X, dinv, every, R, AP, part_a, part_b)
     rr, rz = part_a.sum(axis=0), part_b.sum(axis=0)
     rel = np.sqrt(rr) / scale
     history = [[float(v)] for v in rel]
@@ -430,7 +516,7 @@ def _pcg_block(ker: _Kernels, S, nbr, B, X, dinv, tol: float, maxiter: int) -> l
         it += 1
         active = status == _RUNNING
         # Ap = Q p ; pAp = p·Ap
-        ker.apply_dot(S, nbr, P, AP, part_a)
+        ker.apply_dot(*op, P, AP, part_a)
         pap = part_a.sum(axis=0)
         broken = active & ~(np.isfinite(pap) & (pap > 0))
         for k in np.flatnonzero(broken):
@@ -453,8 +539,7 @@ def _pcg_block(ker: _Kernels, S, nbr, B, X, dinv, tol: float, maxiter: int) -> l
         candidates = active & (rel <= tol)
         restart = np.zeros(lanes, bool)
         if candidates.any():
-            ker.residual(S, nbr, B, X, dinv, candidates.astype(np.int32), R, AP, part_a,
-                         part_b)
+            ker.residual(op, B, X, dinv, candidates.astype(np.int32), R, AP, part_a, part_b)
             true_rel = np.sqrt(part_a.sum(axis=0)) / scale
             rz_new = np.where(candidates, part_b.sum(axis=0), rz_new)
             for k in np.flatnonzero(candidates):
@@ -480,8 +565,7 @@ def _pcg_block(ker: _Kernels, S, nbr, B, X, dinv, tol: float, maxiter: int) -> l
     # Columns that stopped without converging: report the true residual of the returned x.
     unfinished = status != _CONVERGED
     if unfinished.any():
-        ker.residual(S, nbr, B, X, dinv, unfinished.astype(np.int32), R, AP, part_a,
-                     part_b)
+        ker.residual(op, B, X, dinv, unfinished.astype(np.int32), R, AP, part_a, part_b)
         true_rel = np.sqrt(part_a.sum(axis=0)) / scale
         for k in np.flatnonzero(unfinished):
             history[k][-1] = float(true_rel[k])
@@ -496,7 +580,7 @@ def _pcg_block(ker: _Kernels, S, nbr, B, X, dinv, tol: float, maxiter: int) -> l
 
 
 def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
-                dtype=np.float32, check: bool = True) -> tuple:
+                dtype=np.float32, check: bool = True, far=None) -> tuple:
     """Solve ``Q X = B`` for K right-hand sides at once (Jacobi-preconditioned CG).
 
     Every column has its own alpha and beta; all columns advance in the same kernels each
@@ -507,7 +591,8 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
 
     Args:
         S, nbr: the stencil (module docstring), validated by :func:`check_stencil` unless
-            ``check`` is False (the caller already did).
+            ``check`` is False (the caller already did); far: its optional far part
+            (S2, nbr2), validated by :func:`check_far`.
         B: (N, K) right-hand sides.
         X0: (N, K) warm start (default 0).
         tol: relative residual target.
@@ -520,6 +605,8 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
         Deterministic.
     """
     S, nbr = check_stencil(S, nbr) if check else _stencil_arrays(S, nbr)
+    far = check_far(far, S) if check else _far_arrays(far, S.shape[0])
+    op = _flat_op(S, nbr, far)
     n = S.shape[0]
     if np.dtype(dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise ValueError(f"dtype must be float32 or float64, got {dtype}")
@@ -536,7 +623,7 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
     columns = []
     for a, b in _column_blocks(B.shape[1]):
         Xb = np.zeros((n + 1, b - a), dtype) if X0 is None else _padded(X0[:, a:b], dtype)
-        columns += _pcg_block(_kernels(b - a, dtype), S.reshape(-1), nbr.reshape(-1),
+        columns += _pcg_block(_kernels(b - a, dtype, far is not None), op,
                               _padded(B[:, a:b], dtype), Xb, dinv, tol, maxiter)
         X[:, a:b] = Xb[1:]
     n_bad = sum(not c["converged"] for c in columns)
@@ -545,12 +632,13 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
                    n_not_converged=n_bad, columns=columns)
 
 
-def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000) -> tuple:
+def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000, far=None) -> tuple:
     """MAP solve ``Q mu = h`` by Jacobi-preconditioned CG (M = diag Q = S[:, 13]).
 
     Args:
         S: (N, 27) float32 stencil of the posterior precision; nbr: (N, 27) int32 (module
-            docstring); validated by :func:`check_stencil`.
+            docstring); validated by :func:`check_stencil`. far: optional (S2, nbr2) part
+            at offsets +-2 (curvature prior), validated by :func:`check_far`.
         h: (N,) right-hand side A^T W y + b0 (float32 or float64).
         x0: (N,) warm start, e.g. the bootstrap TSDF in metres (default 0).
         tol: target of the relative residual ``||h - Q x||_2 / ||h||_2`` (the solution's
@@ -569,6 +657,7 @@ def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000) -> tuple:
         Deterministic: the same inputs give bitwise identical x and info.
     """
     S, nbr = check_stencil(S, nbr)
+    far = check_far(far, S)
     n = S.shape[0]
     h = _block(h, n, "h", np.float64)
     if h.ndim != 1:
@@ -577,7 +666,7 @@ def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000) -> tuple:
     if x0 is not None and x0.ndim != 1:
         raise ValueError(f"x0 must have shape ({n},), got {x0.shape}")
     X, info = pcg_batched(S, nbr, h[:, None], None if x0 is None else x0[:, None], tol,
-                          maxiter, np.float64, check=False)
+                          maxiter, np.float64, check=False, far=far)
     return X[:, 0], info["columns"][0]
 
 
@@ -662,7 +751,7 @@ def probe_vectors(n: int, n_probes: int, seed: int = 0, method: str = "rademache
 
 
 def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, method: str = "rademacher",
-                   tol: float = 1e-4, maxiter: int = 1000, ijk=None) -> tuple:
+                   tol: float = 1e-4, maxiter: int = 1000, ijk=None, far=None) -> tuple:
     """Stochastic estimate of the posterior variance ``s ~= diag(Q^-1)`` (DESIGN.md 3.6).
 
     ``s = sum_k z_k * u_k / sum_k z_k * z_k`` (elementwise) with ``Q u_k = z_k``, the K
@@ -680,6 +769,7 @@ def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, method: str = "rad
             1e-7 at 25 % / 35 % more iterations per step).
         maxiter: iteration cap per probe.
         ijk: (N, 3) band voxels (``coloring`` only).
+        far: optional (S2, nbr2) part of Q at offsets +-2 (:func:`check_far`).
     Returns:
         ``(s, info)``: s (N,) float32 (m^2 when Q is in 1/m^2); info = dict(method,
         n_probes, lattice ((1, a, b) of the colouring, else None), converged (all probes),
@@ -688,9 +778,10 @@ def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, method: str = "rad
         Deterministic: the same seed gives bitwise identical s.
     """
     S, nbr = check_stencil(S, nbr)
+    far = check_far(far, S)
     n = S.shape[0]
     Z = probe_vectors(n, n_probes, seed, method, ijk)
-    U, solve = pcg_batched(S, nbr, Z, None, tol, maxiter, np.float32, check=False)
+    U, solve = pcg_batched(S, nbr, Z, None, tol, maxiter, np.float32, check=False, far=far)
     num = np.einsum("ij,ij->i", Z, U, dtype=np.float64)
     den = np.einsum("ij,ij->i", Z, Z, dtype=np.float64)
     s = (num / den).astype(np.float32)

@@ -85,6 +85,97 @@ def _add_membrane_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
         b0[i] = ti.cast(anchor * ti.cast(tsdf[i], ti.f64), b0_dtype)
 
 
+_AXIS_STRIDE = (9, 3, 1)  # offset o of (di, dj, dk) is 13 + 9 di + 3 dj + dk
+
+
+@ti.kernel
+def _add_curvature_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                         nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                         S2: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                         nbr2: ti.types.ndarray(dtype=ti.i32, ndim=2), c: ti.f64):
+    """Row i of ``c D^T D`` (second differences along the axes, see :func:`add_curvature_prior`)
+    into S (offsets 0 and +-1 along each axis, added) and S2 / nbr2 (offsets +-2, written).
+
+    A second difference ``d_j = x_{j-e} - 2 x_j + x_{j+e}`` exists where voxel j and both of its
+    neighbours along axis e are band voxels. Voxel i takes part in three of them per axis:
+    centred at i (coefficient -2), at i - e and at i + e (coefficient 1 each), so
+    ``(D^T D)_ii = 4 [d_i] + [d_{i-e}] + [d_{i+e}]``, ``(D^T D)_{i,i+e} = -2 ([d_i] + [d_{i+e}])``
+    and ``(D^T D)_{i,i+2e} = [d_{i+e}]`` ([.] = 1 if it exists). Each sum is formed in float64
+    from the same indicators at both ends of a pair, so S stays exactly symmetric. Deterministic:
+    each row is written by its own thread (gather)."""
+    for i in range(nbr.shape[0]):
+        diag = ti.f64(0.0)
+        for ax in ti.static(range(3)):
+            om = ti.static(CENTRE - _AXIS_STRIDE[ax])
+            op = ti.static(CENTRE + _AXIS_STRIDE[ax])
+            m = nbr[i, om]
+            p = nbr[i, op]
+            mm = -1
+            pp = -1
+            if m >= 0:
+                mm = nbr[m, om]
+            if p >= 0:
+                pp = nbr[p, op]
+            vi = ti.f64(0.0)
+            if m >= 0 and p >= 0:
+                vi = 1.0
+            vm = ti.f64(0.0)
+            if mm >= 0:
+                vm = 1.0
+            vp = ti.f64(0.0)
+            if pp >= 0:
+                vp = 1.0
+            diag += c * (4.0 * vi + vm + vp)
+            if m >= 0:
+                S[i, om] = ti.cast(ti.cast(S[i, om], ti.f64) - 2.0 * c * (vi + vm), ti.f32)
+            if p >= 0:
+                S[i, op] = ti.cast(ti.cast(S[i, op], ti.f64) - 2.0 * c * (vi + vp), ti.f32)
+            S2[i, 2 * ax] = ti.cast(c * vm, ti.f32)
+            nbr2[i, 2 * ax] = mm
+            S2[i, 2 * ax + 1] = ti.cast(c * vp, ti.f32)
+            nbr2[i, 2 * ax + 1] = pp
+        S[i, CENTRE] = ti.cast(ti.cast(S[i, CENTRE], ti.f64) + diag, ti.f32)
+
+
+def add_curvature_prior(S, nbr, *, lam2: float) -> tuple:
+    """Add the second-order (curvature) prior ``lam2 |D x|^2`` to the stencil ``S``; return its
+    entries at offsets +-2 as the far part ``(S2, nbr2)`` of Q (kernels/pcg.py).
+
+    D holds one row per band voxel j and axis e whose neighbours ``j +- e`` are both band
+    voxels: the second difference ``x_{j-e} - 2 x_j + x_{j+e}``. Unlike the membrane, this
+    prior does not penalise the unit slope of a signed distance field (an affine x has
+    ``D x = 0``): only bending, i.e. curvature, costs. The prior standard deviation of one
+    second difference is ``1 / sqrt(lam2)`` metres.
+
+    Args:
+        S: (N, 27) float32 stencil, modified in place (symmetric in, symmetric out).
+        nbr: (N, 27) int32 neighbour table (kernels/band.py).
+        lam2: strength >= 0, 1/m^2 like Q (chosen by the caller).
+    Returns:
+        ``(S2, nbr2)``: (N, 6) float32 and int32; column ``a = 2 axis + (0: -2, 1: +2)``;
+        ``nbr2 = -1`` and ``S2 = 0`` where that second difference does not exist.
+
+    Raises:
+        ValueError: bad shapes, dtypes or lam2.
+    """
+    if not (isinstance(lam2, (int, float, np.floating, np.integer)) and np.isfinite(lam2)
+            and lam2 >= 0):
+        raise ValueError(f"prior lam2 must be a finite number >= 0, got {lam2!r}")
+    shape = _shape_of(nbr, "nbr")
+    n = shape[0] if len(shape) == 2 else -1
+    for name, arr in (("S", S), ("nbr", nbr)):
+        if _shape_of(arr, name) != (n, 27):
+            raise ValueError(f"prior argument {name} must have shape (N, 27), got "
+                             f"{_shape_of(arr, name)}")
+    _check_dtype(S, "S", (np.float32,))
+    _check_dtype(nbr, "nbr", (np.int32,))
+    S2 = np.zeros((n, 6), np.float32)
+    nbr2 = np.full((n, 6), -1, np.int32)
+    if n:
+        _add_curvature_prior(S, nbr, S2, nbr2, float(lam2))
+    return S2, nbr2
+
+
 def _shape_of(arr, name: str) -> tuple:
     if not hasattr(arr, "shape"):
         raise ValueError(f"prior argument {name} must be a numpy array or Taichi ndarray, "

@@ -8,7 +8,8 @@ import trimesh
 
 from bftaichi.errors import BftaichiError, DataError
 from bftaichi.io import write_mesh_ply
-from bftaichi.metrics import format_table, geometry_metrics, load_mesh
+from bftaichi.metrics import (format_table, geometry_metrics, load_mesh, surface_sdf,
+                              uncertainty_metrics)
 
 THRESHOLDS = (5, 10, 20, 50)
 
@@ -185,3 +186,44 @@ def test_format_table_aligned_with_units():
     # keys select and order the lines
     only = format_table({"a": m1}, keys=["n_pred_faces", "accuracy_m"]).splitlines()
     assert [line.split()[0] for line in only[2:]] == ["n_pred_faces", "accuracy"]
+
+
+def test_surface_sdf_matches_the_analytic_sphere_and_its_sign():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.3)
+    pts = np.random.default_rng(0).normal(size=(2000, 3))
+    pts *= (0.3 + np.random.default_rng(1).uniform(-0.02, 0.02, (2000, 1))) / np.linalg.norm(
+        pts, axis=1, keepdims=True)
+    phi, valid = surface_sdf(sphere, pts, spacing_m=0.002)
+    assert valid.all()  # closed mesh: no boundary, every sign defined
+    # the icosphere's flat facets sit up to ~0.15 mm inside the analytic sphere
+    np.testing.assert_allclose(phi, np.linalg.norm(pts, axis=1) - 0.3, atol=3e-4)
+
+
+def test_surface_sdf_leaves_points_beyond_an_open_edge_undecided():
+    plane = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+    pts = np.array([[0.5, 0.5, 0.01], [0.5, 0.5, -0.02], [1.2, 0.5, 0.01], [np.nan, 0, 0]])
+    phi, valid = surface_sdf(plane, pts, spacing_m=0.01)
+    np.testing.assert_allclose(phi[:2], [0.01, -0.02], atol=1e-9)  # above: +, below: -
+    assert valid.tolist() == [True, True, False, False]
+
+
+def test_uncertainty_metrics_of_honest_gaussian_sigma():
+    rng = np.random.default_rng(0)
+    sigma = rng.uniform(0.001, 0.005, 200_000)
+    truth = rng.normal(size=sigma.size)
+    u = uncertainty_metrics(truth + sigma * rng.normal(size=sigma.size), sigma, truth)
+    assert abs(u["coverage@1sigma"] - 0.683) < 0.01 and abs(u["coverage@2sigma"] - 0.954) < 0.005
+    assert abs(u["median_z"] - 0.674) < 0.01 and u["spearman"] > 0.3
+    # a sigma twice too large is reported as conservative, and a constant one ranks nothing
+    big = uncertainty_metrics(truth + sigma * rng.normal(size=sigma.size), 2 * sigma, truth)
+    assert big["coverage@1sigma"] > 0.9 and big["median_z"] < 0.4
+    flat = uncertainty_metrics(truth + sigma * rng.normal(size=sigma.size),
+                               np.full(sigma.size, 0.003), truth)
+    assert flat["ause"] > u["ause"]
+
+
+def test_uncertainty_metrics_reject_bad_input():
+    with pytest.raises(BftaichiError, match="one length"):
+        uncertainty_metrics(np.zeros(3), np.ones(2), np.zeros(3))
+    with pytest.raises(BftaichiError, match="finite"):
+        uncertainty_metrics(np.array([0.0, np.nan]), np.ones(2), np.zeros(2))

@@ -86,6 +86,8 @@ def test_full_run_writes_the_documented_outputs(tmp_path):
     assert set(saved["metrics"]) == {"tsdf_mesh.ply", "mesh.ply"}
     assert saved["solver"]["map"]["converged"] is True
     assert saved["solver"]["variance"]["n_probes"] == cfg.solver.probes
+    u = saved["uncertainty"]  # sigma judged against the ground truth, voxels near the surface
+    assert u["n"] > 50 and 0 <= u["coverage@1sigma"] <= u["coverage@2sigma"] <= 1
 
 
 def test_tsdf_only_stage_skips_the_posterior(tmp_path):

@@ -3,7 +3,10 @@
 The reference builds Q0 from an explicit edge list (each undirected edge once, found with a dict
 of voxel coordinates, not with the band's neighbour table) on a small sphere band, and the
 stencil S is compared with it entry by entry; then symmetry, positive definiteness for each
-anchor mode, and the membrane's null space (the constant vector).
+anchor mode, and the membrane's null space (the constant vector). The curvature prior is checked
+the same way against ``D^T D`` with D's second differences found by voxel coordinates, and for
+the property that makes it the right prior for a signed distance: it does not penalise a field of
+unit slope (D x = 0 for affine x), which the membrane does.
 """
 
 import itertools
@@ -15,7 +18,8 @@ import taichi as ti
 from scipy.sparse.csgraph import connected_components
 
 from kernels.band import build_band
-from kernels.prior import ANCHOR_MODES, add_prior
+from kernels.pcg import apply_Q, check_far, check_stencil
+from kernels.prior import ANCHOR_MODES, add_curvature_prior, add_prior
 
 VOXEL = 0.01
 TAU_B = 0.02
@@ -178,3 +182,87 @@ def test_bad_arguments_are_rejected(band, bad):
         args["b0"] = ti.ndarray(ti.i32, shape=(n,))
     with pytest.raises(ValueError):
         add_prior(**args, **kw)
+
+
+def reference_curvature(ijk, lam2):
+    """lam2 D^T D (CSR float64): one row of D per voxel j and axis e with j - e and j + e in
+    the band (found by coordinates), the second difference x_{j-e} - 2 x_j + x_{j+e}."""
+    index = {tuple(v): k for k, v in enumerate(ijk.tolist())}
+    rows, cols, vals = [], [], []
+    r = 0
+    for k, v in enumerate(ijk.tolist()):
+        for e in np.eye(3, dtype=int).tolist():
+            lo = index.get(tuple(np.subtract(v, e)))
+            hi = index.get(tuple(np.add(v, e)))
+            if lo is not None and hi is not None:
+                rows += [r, r, r]
+                cols += [lo, k, hi]
+                vals += [1.0, -2.0, 1.0]
+                r += 1
+    D = sp.csr_matrix((vals, (rows, cols)), shape=(r, len(ijk)))
+    return (lam2 * (D.T @ D)).tocsr()
+
+
+def curvature_csr(S, nbr, S2, nbr2):
+    n = len(nbr)
+    i, a = np.nonzero(nbr2 >= 0)
+    far = sp.csr_matrix((S2[i, a].astype(np.float64), (i, nbr2[i, a])), shape=(n, n))
+    return stencil_to_csr(S, nbr) + far
+
+
+def test_curvature_prior_equals_reference_csr(band):
+    n = len(band["ijk"])
+    S = np.zeros((n, 27), np.float32)
+    S2, nbr2 = add_curvature_prior(S, band["nbr"], lam2=LAM)
+    Q_ref = reference_curvature(band["ijk"], LAM)
+    Q = curvature_csr(S, band["nbr"], S2, nbr2)
+    diff = abs(Q - Q_ref)
+    assert diff.max() <= 1e-6 * abs(Q_ref).max()
+    assert Q.count_nonzero() == Q_ref.count_nonzero()
+    assert (nbr2 >= 0).sum() > 100  # the band has interior second differences at +-2
+    assert (S2[nbr2 < 0] == 0).all()
+    # exactly symmetric, in both parts: what check_stencil / check_far verify
+    S = S + 1.0 * np.eye(1, 27, 13, dtype=np.float32)  # a positive diagonal, as with data
+    check_stencil(S, band["nbr"], rtol=0)
+    check_far((S2, nbr2), S, rtol=0)
+    i, a = np.nonzero(nbr2 >= 0)
+    np.testing.assert_array_equal(S2[i, a], S2[nbr2[i, a], a ^ 1])
+
+
+def test_curvature_prior_does_not_penalise_a_unit_slope_but_the_membrane_does(band):
+    """A signed distance to a plane is affine with unit slope: the curvature prior's energy
+    is 0 for it (and for any affine field), the membrane's is not; a bent field costs."""
+    n = len(band["ijk"])
+    S = np.zeros((n, 27), np.float32)
+    far = add_curvature_prior(S, band["nbr"], lam2=LAM)
+    x = (band["ijk"] + 0.5) @ np.array([0.6, 0.0, 0.8]) * VOXEL  # plane SDF, |grad| = 1
+    qx = apply_Q(S, band["nbr"], x, far=far)
+    assert np.abs(qx).max() <= 1e-9 * LAM
+    bent = np.linalg.norm((band["ijk"] + 0.5) * VOXEL, axis=1)  # a sphere's SDF + const
+    assert bent @ apply_Q(S, band["nbr"], bent, far=far) > 1e-3 * LAM * VOXEL ** 2
+    M, _ = run_prior(band, 6, "none", 0.0)
+    assert x @ apply_Q(M, band["nbr"], x) > 0.1 * LAM * VOXEL ** 2 * n
+
+
+def test_curvature_prior_adds_to_an_existing_stencil(band):
+    nbr = band["nbr"]
+    S0, _ = run_prior(band, 26, "boundary", 1e-3)
+    S = S0.copy()
+    S2, nbr2 = add_curvature_prior(S, nbr, lam2=LAM)
+    Q = curvature_csr(S, nbr, S2, nbr2)
+    Q_ref = stencil_to_csr(S0, nbr) + reference_curvature(band["ijk"], LAM)
+    assert abs(Q - Q_ref).max() <= 1e-5 * abs(Q_ref).max()
+
+
+@pytest.mark.parametrize("bad", ["lam2", "shape", "dtype"])
+def test_curvature_prior_rejects_bad_arguments(band, bad):
+    n = len(band["ijk"])
+    S, nbr, lam2 = np.zeros((n, 27), np.float32), band["nbr"], 1.0
+    if bad == "lam2":
+        lam2 = float("nan")
+    elif bad == "shape":
+        S = np.zeros((n, 26), np.float32)
+    else:
+        S = np.zeros((n, 27), np.float64)
+    with pytest.raises(ValueError):
+        add_curvature_prior(S, nbr, lam2=lam2)

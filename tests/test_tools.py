@@ -50,17 +50,23 @@ def test_bench_tsdf_runs_on_a_few_frames():
     assert "frames/s" in out
 
 
-def test_calibration_reports_coverage_and_rank_correlation():
-    out = _run([TOOLS / "calibration.py", "--set", "synthetic.n_views=6", "--set",
-                "synthetic.width=96", "--set", "synthetic.height=72", "--set", "synthetic.fx=78.75",
-                "--set", "synthetic.fy=78.75", "--set", "synthetic.cx=47.5", "--set",
-                "synthetic.cy=35.5", "--set", "tsdf.voxel_size_m=0.03", "--set", "tsdf.trunc_m=0.06"])
-    assert "coverage |e| <= 1/2/3 sigma" in out and "Spearman(sigma, |e|)" in out
+def test_calibration_reports_coverage_and_rank_correlation(tmp_path):
+    sets = [a for s in TINY_SCENE_SETS for a in ("--set", s)]
+    out = _run([TOOLS / "calibration.py", "scenes/default.toml", *sets, "--only", "default",
+                "--markdown", tmp_path / "c.md"])
+    row = [ln for ln in out.splitlines() if ln.startswith("| default |")]
+    assert len(row) == 1
+    cells = [c.strip() for c in row[0].strip("|").split("|")]
+    cover = [float(v) for v in cells[4].split("/")]
+    assert 0 <= cover[0] <= cover[1] <= cover[2] <= 100  # coverage grows with k
+    assert int(cells[1]) > 0 and -1 <= float(cells[6]) <= 1  # voxels; Spearman is a correlation
+    assert (tmp_path / "c.md").read_text().startswith("Calibration on")
 
 
 def test_reproduce_paper_prints_the_three_rows(tmp_path):
     out = _run([TOOLS / "reproduce_paper.py", "--set", "synthetic.n_views=4",
                 "--markdown", tmp_path / "t.md"])
-    for row in ("TSDF bootstrap", "BayesFusion-SDF, no anchor", "BayesFusion-SDF + anchor"):
+    for row in ("TSDF bootstrap", "BayesFusion-SDF, no anchor", "BayesFusion-SDF + anchor",
+                "bftaichi default (+ curvature prior)"):
         assert f"| {row} |" in out
     assert (tmp_path / "t.md").read_text().startswith("| method |")
