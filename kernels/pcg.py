@@ -60,6 +60,9 @@ K = 16 block costs 2.7-4.6 ns per voxel and vector (5-7x CSR SpMV, 1.7-3.2x CSR 
 ~400 bytes per voxel) take about as long as the product.
 """
 
+import mmap
+import time
+
 import numpy as np
 import taichi as ti
 
@@ -68,6 +71,11 @@ CENTER = 13  # offset of the voxel itself: (0, 0, 0)
 FAR = 6  # optional far offsets +-2 along each axis (a = 2 * axis + (0: -2, 1: +2))
 CHUNK = 1024  # rows per reduction chunk (fixed: results do not depend on the thread count)
 MAX_LANES = 16  # widest compiled vector block (K = 16 probes are one block)
+#: Taichi's CPU backend gives each thread one contiguous share of at least this many
+#: iterations of a kernel's outer loop (its MakeCPUMultithreadedRangeFor pass), so a loop
+#: over the ~500 chunks of a 500k-voxel band ran on one thread. Every parallel loop here
+#: runs over max(n_chunks, TASK_MIN * threads) virtual iterations instead (:func:`_spread`).
+TASK_MIN = 512
 
 #: (27, 3) int32 offsets (di, dj, dk); row o is offset o = (di+1)*9 + (dj+1)*3 + (dk+1).
 OFFSETS = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"),
@@ -82,27 +90,48 @@ _STALLS = 2  # restarts in a row without a 10 % smaller true residual: stagnated
 _KERNELS = {}
 
 
+def _virtual_iterations() -> int:
+    """Enough outer-loop iterations for every CPU thread to get a share (:data:`TASK_MIN`);
+    read when a kernel is compiled."""
+    return TASK_MIN * max(1, int(ti.lang.impl.current_cfg().cpu_max_num_threads))
+
+
+@ti.func
+def _spread(t, n_chunks, n_virtual):
+    """First chunk of virtual iteration ``t`` when ``n_chunks`` chunks are dealt out evenly
+    over ``n_virtual = max(n_chunks, _virtual_iterations())`` iterations; chunk t itself
+    when there are enough chunks (no division)."""
+    first = t
+    if n_chunks < n_virtual:
+        first = t * n_chunks // n_virtual  # < TASK_MIN * threads * n_chunks: no overflow
+    return first
+
+
 class _Kernels:
-    """The stencil kernels for blocks of ``lanes`` vectors of ``dtype`` (compiled on first use;
-    Taichi's offline cache keeps them across runs).
+    """The 27-point gather kernels for blocks of ``lanes`` vectors of ``dtype`` (compiled on
+    first use; Taichi's offline cache keeps them across runs), and the PCG vector updates.
 
     Arguments: ``S`` and ``nbr`` flattened to (N*27,) (row i at i*27); vectors (N+1, lanes)
     numpy arrays seen as N+1 vectors of ``lanes`` elements, voxel i in row i+1 and row 0
     zero (the pad row: see the module docstring); chunk partial sums (n_chunks, lanes)
     float64; ``dinv`` = 1 / Q_ii (N,) float64. Every loop runs over fixed chunks of
-    :data:`CHUNK` rows, one thread per chunk. All kernels are deterministic: every output
-    element is written by one thread, sums run in a fixed order, no atomics.
+    :data:`CHUNK` rows, one thread per chunk, the chunks dealt out to the threads by
+    :func:`_spread`. All kernels are deterministic: every output element is written by one
+    thread, sums run in a fixed order, no atomics.
 
     Code shape matters here (checked in the optimised LLVM IR): with the 27 offsets unrolled
     and the row sums feeding a float64 vector sum, LLVM turns each offset's ``lanes``
     multiply-adds into SIMD instructions; the same row sums only stored (or stored behind a
     select) stayed scalar and ran 2-7x slower at 16 lanes. Hence one stencil kernel,
-    :meth:`apply_dot`, for every product, and the residual as apply_dot + subtract. The
-    vector updates stay scalar (each store reloads the array pointer, which blocks LLVM's
-    SLP vectoriser); they stream memory and run at ~7 GB/s.
+    :meth:`apply_dot`, for every product, and the residual as apply_dot + subtract. The row
+    sum runs in three interleaved partial sums (offsets by column, o // 3 mod 3): one
+    27-term chain is latency bound (27 dependent adds per row). The vector updates stay
+    scalar (each store reloads the array pointer, which blocks LLVM's SLP vectoriser); they
+    stream memory.
     """
 
     def __init__(self, lanes: int, dtype, far: bool):
+        spread = _virtual_iterations()
         V = ti.types.vector(lanes, dtype)
         VD = ti.types.vector(lanes, ti.f64)
         VI = ti.types.vector(lanes, ti.i32)
@@ -117,29 +146,40 @@ class _Kernels:
                   nbr2: ti.template(), X: ti.template(), i: ti.i32):
             """(Q X)_i = sum_o S[i,o] X[nbr[i,o]] (+ the far part): the offsets unrolled, no
             branch (a missing neighbour, index -1, reads the zero pad row), accumulated in
-            dtype. Without ``far`` (compile time) S2 and nbr2 are never read."""
-            acc = V(0.0)
+            dtype in three partial sums. Without ``far`` (compile time) S2 and nbr2 are
+            never read."""
+            acc0, acc1, acc2 = V(0.0), V(0.0), V(0.0)
             base = i * STENCIL
             for o in ti.static(range(STENCIL)):
-                acc += ti.cast(S[base + o], dtype) * X[nbr[base + o] + 1]
+                term = ti.cast(S[base + o], dtype) * X[nbr[base + o] + 1]
+                if ti.static((o // 3) % 3 == 0):
+                    acc0 += term
+                elif ti.static((o // 3) % 3 == 1):
+                    acc1 += term
+                else:
+                    acc2 += term
             if ti.static(far):
                 base2 = i * FAR
                 for a in ti.static(range(FAR)):
-                    acc += ti.cast(S2[base2 + a], dtype) * X[nbr2[base2 + a] + 1]
-            return acc
+                    acc0 += ti.cast(S2[base2 + a], dtype) * X[nbr2[base2 + a] + 1]
+            return (acc0 + acc1) + acc2
 
         @ti.kernel
         def apply_dot(S: flat_s, nbr: flat_n, S2: flat_s, nbr2: flat_n, P: vec, AP: vec,
                       pap: part):
             """AP = Q P and the chunk partials of p·Ap (float64; deterministic)."""
             n = P.shape[0] - 1
-            for c in range(pap.shape[0]):
-                s = VD(0.0)
-                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
-                    ap = q_row(S, nbr, S2, nbr2, P, i)
-                    AP[i + 1] = ap
-                    s += ti.cast(P[i + 1], ti.f64) * ti.cast(ap, ti.f64)
-                pap[c] = s
+            n_chunks = pap.shape[0]
+            n_virtual = ti.max(n_chunks, spread)
+            for t in range(n_virtual):
+                for c in range(_spread(t, n_chunks, n_virtual),
+                               _spread(t + 1, n_chunks, n_virtual)):
+                    s = VD(0.0)
+                    for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                        ap = q_row(S, nbr, S2, nbr2, P, i)
+                        AP[i + 1] = ap
+                        s += ti.cast(P[i + 1], ti.f64) * ti.cast(ap, ti.f64)
+                    pap[c] = s
 
         @ti.kernel
         def subtract(B: vec, AX: vec, dinv: diag, mask: VI, R: vec, rr: part, rz: part):
@@ -147,18 +187,22 @@ class _Kernels:
             chunk partials of r·r and r·M^-1 r = sum r_i^2 / Q_ii (float64; deterministic)."""
             n = R.shape[0] - 1
             on = mask != 0
-            for c in range(rr.shape[0]):
-                s_rr = VD(0.0)
-                s_rz = VD(0.0)
-                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
-                    b, ax, r = B[i + 1], AX[i + 1], R[i + 1]  # loads first
-                    r = ti.select(on, b - ax, r)
-                    R[i + 1] = r
-                    r64 = ti.cast(r, ti.f64)
-                    s_rr += r64 * r64
-                    s_rz += r64 * r64 * dinv[i]
-                rr[c] = s_rr
-                rz[c] = s_rz
+            n_chunks = rr.shape[0]
+            n_virtual = ti.max(n_chunks, spread)
+            for t in range(n_virtual):
+                for c in range(_spread(t, n_chunks, n_virtual),
+                               _spread(t + 1, n_chunks, n_virtual)):
+                    s_rr = VD(0.0)
+                    s_rz = VD(0.0)
+                    for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                        b, ax, r = B[i + 1], AX[i + 1], R[i + 1]  # loads first
+                        r = ti.select(on, b - ax, r)
+                        R[i + 1] = r
+                        r64 = ti.cast(r, ti.f64)
+                        s_rr += r64 * r64
+                        s_rz += r64 * r64 * dinv[i]
+                    rr[c] = s_rr
+                    rz[c] = s_rz
 
         @ti.kernel
         def update_xr(alpha: VD, active: VI, X: vec, R: vec, P: vec, AP: vec, dinv: diag,
@@ -168,20 +212,24 @@ class _Kernels:
             n = X.shape[0] - 1
             a = ti.cast(alpha, dtype)
             on = active != 0
-            for c in range(rr.shape[0]):
-                s_rr = VD(0.0)
-                s_rz = VD(0.0)
-                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
-                    x, r, p, ap = X[i + 1], R[i + 1], P[i + 1], AP[i + 1]  # loads first
-                    x = ti.select(on, x + a * p, x)
-                    r = ti.select(on, r - a * ap, r)
-                    X[i + 1] = x
-                    R[i + 1] = r
-                    r64 = ti.cast(r, ti.f64)
-                    s_rr += r64 * r64
-                    s_rz += r64 * r64 * dinv[i]
-                rr[c] = s_rr
-                rz[c] = s_rz
+            n_chunks = rr.shape[0]
+            n_virtual = ti.max(n_chunks, spread)
+            for t in range(n_virtual):
+                for c in range(_spread(t, n_chunks, n_virtual),
+                               _spread(t + 1, n_chunks, n_virtual)):
+                    s_rr = VD(0.0)
+                    s_rz = VD(0.0)
+                    for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                        x, r, p, ap = X[i + 1], R[i + 1], P[i + 1], AP[i + 1]  # loads first
+                        x = ti.select(on, x + a * p, x)
+                        r = ti.select(on, r - a * ap, r)
+                        X[i + 1] = x
+                        R[i + 1] = r
+                        r64 = ti.cast(r, ti.f64)
+                        s_rr += r64 * r64
+                        s_rz += r64 * r64 * dinv[i]
+                    rr[c] = s_rr
+                    rz[c] = s_rz
 
         @ti.kernel
         def update_p(beta: VD, active: VI, R: vec, dinv: diag, P: vec):
@@ -189,19 +237,17 @@ class _Kernels:
             b = ti.cast(beta, dtype)
             on = active != 0
             n = P.shape[0] - 1
-            for c in range((n + CHUNK - 1) // CHUNK):
-                for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
-                    r, p = R[i + 1], P[i + 1]  # loads first
-                    P[i + 1] = ti.select(on, ti.cast(dinv[i], dtype) * r + b * p, p)
+            n_chunks = (n + CHUNK - 1) // CHUNK
+            n_virtual = ti.max(n_chunks, spread)
+            for t in range(n_virtual):
+                for c in range(_spread(t, n_chunks, n_virtual),
+                               _spread(t + 1, n_chunks, n_virtual)):
+                    for i in range(c * CHUNK, ti.min(n, c * CHUNK + CHUNK)):
+                        r, p = R[i + 1], P[i + 1]  # loads first
+                        P[i + 1] = ti.select(on, ti.cast(dinv[i], dtype) * r + b * p, p)
 
         self.apply_dot, self.subtract = apply_dot, subtract
         self.update_xr, self.update_p = update_xr, update_p
-
-    def residual(self, op, B, X, dinv, mask, R, AX, rr, rz):
-        """R = B - Q X in the ``mask`` lanes (AX: scratch block), chunk partials of r·r and
-        r·M^-1 r into ``rr``, ``rz``. ``op`` = (S, nbr, S2, nbr2) flat."""
-        self.apply_dot(*op, X, AX, rr)
-        self.subtract(B, AX, dinv, mask, R, rr, rz)
 
 
 def _kernels(lanes: int, dtype, far: bool = False) -> _Kernels:
@@ -209,6 +255,220 @@ def _kernels(lanes: int, dtype, far: bool = False) -> _Kernels:
     if key not in _KERNELS:
         _KERNELS[key] = _Kernels(lanes, ti.f64 if np.dtype(dtype) == np.float64 else ti.f32,
                                  bool(far))
+    return _KERNELS[key]
+
+
+# -- the compact layout (single vectors) -----------------------------------------------------
+
+#: Near columns (di, dj) of the compact layout, the voxel's own column (0, 0) excluded.
+_COLUMNS = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]
+_COLUMN_OFFSETS = [[(di + 1) * 9 + (dj + 1) * 3 + dk + 1 for dk in (-1, 0, 1)]
+                   for di, dj in _COLUMNS]
+_BIT = [o if o < CENTER else o - 1 for o in range(STENCIL)]  # presence bit of offset o
+_FAR_BIT = STENCIL - 1  # presence bit of far offset a: _FAR_BIT + a (bits 26..31)
+_UPPER = STENCIL - CENTER  # 14 slots: Q_ii and the 13 offsets o > 13 (o - 13)
+_R_START, _R_LEN, _R_SIMD, _R_OFF = 0, 1, 2, 3  # columns of the sub-run table
+_R_COLS = _R_OFF + len(_COLUMNS) + FAR
+_SUBRUNS_PER_CHUNK = 64  # sub-runs per reduction chunk (~1200 rows in a 10-voxel-thick band)
+_TAIL = 16  # zero rows after the last voxel (whole-block loads past the end stay in bounds)
+_INDEX_MASK = 0x3FFFFFFF  # see _CompactKernels: makes i + r provably non-wrapping for LLVM
+_STRIDE_MOD, _STRIDE_REM = 1024, 400  # slot stride = 400 mod 1024 floats (1600 B mod 4 KiB)
+
+
+def _compact_lanes(dtype) -> int:
+    """SIMD rows per block: 4, float32 or float64 (a float64 AVX2 register; 8 float32 rows
+    measured slower: sub-runs of ~19 voxels leave 19 % of 8-row lanes idle, and the wider
+    block spilled more registers)."""
+    return 4
+
+
+class _CompactKernels:
+    """The single-vector product Q·x on the compact layout (:class:`CompactStencil`), SIMD
+    across rows: a block of ``lanes`` consecutive rows of one sub-run shares the column
+    offsets, so each of the 27 (+6 far) terms is one contiguous vector load of x, one of the
+    coefficients and a multiply-add, for all ``lanes`` rows at once.
+
+    Arguments: ``U`` the layout (:func:`_compact_layout`: coefficient slot s of voxel i at
+    s*stride + i + 1, presence bits of voxel i at mbase + i, sub-run table row q at
+    rbase + q*_R_COLS, the int32 words stored bit for bit; one array, as each array
+    argument costs ~30 us per launch), ``n_sub`` sub-runs of which the first ``n_simd`` are
+    SIMD,
+    P and AP padded (N+1,) vectors of ``dtype``, ``pap`` chunk partials of p·Ap
+    (n_chunks, lanes) float64. Deterministic: every row is written by one thread, sums run
+    in a fixed order, no atomics.
+
+    Code shape (checked in the optimised LLVM IR): Taichi indexes arrays with int32
+    arithmetic that LLVM cannot prove free of wrap-around, so ``A[i + r]`` for r = 0..7 were
+    eight unrelated loads; masking the block base with ``& 0x3FFFFFFF`` (a no-op for valid
+    indices) lets it prove ``i + r`` consecutive and merge them into one vector load. The
+    loads only become SIMD when the row sums feed a per-lane float64 sum (p·Ap, as in
+    :class:`_Kernels`), and only if the scalar rows' code is not in the same loop (it runs
+    as a second pass); stores stay scalar. The row sum runs in three partial sums.
+    """
+
+    def __init__(self, dtype, far: bool):
+        spread = _virtual_iterations()
+        lanes = _compact_lanes(dtype)
+        tdt = ti.f64 if np.dtype(dtype) == np.float64 else ti.f32
+        V = ti.types.vector(lanes, tdt)
+        VD = ti.types.vector(lanes, ti.f64)
+        mi = ti.i64 if tdt == ti.f64 else ti.i32  # mask lanes as wide as the data lanes
+        pre = 32 if tdt == ti.f64 else 0  # int64 lanes: bit b moved to b + 32
+
+        @ti.func
+        def vload(A: ti.template(), i):
+            """A[i .. i+lanes-1] as one vector (``i`` masked: see the class docstring)."""
+            b = i & _INDEX_MASK
+            return ti.Vector([A[b + r] for r in ti.static(range(lanes))], dt=tdt)
+
+        @ti.func
+        def vcoef(U: ti.template(), stride, slot: ti.template(), i):
+            """Coefficient slot ``slot`` of padded rows i .. i+lanes-1, as dtype."""
+            b = (slot * stride + i) & _INDEX_MASK
+            return ti.Vector([ti.cast(U[b + r], tdt) for r in ti.static(range(lanes))])
+
+        @ti.func
+        def rw(U: ti.template(), rbase, q, col: ti.template()):
+            """Sub-run table entry (q, col), int32 stored bit for bit in U."""
+            return ti.bit_cast(U[rbase + q * _R_COLS + col], ti.i32)
+
+        @ti.func
+        def has(m, bit: ti.template()):
+            """Per lane: presence bit ``bit`` is set (moved to the sign bit; int64 lanes hold
+            the bits 32 higher)."""
+            return (m << (31 - bit)) < 0
+
+        @ti.func
+        def block(U: ti.template(), mbase, P: ti.template(), stride, e, off,
+                  off2):
+            """(Q P) of the rows e .. e+lanes-1 (unpadded) of one sub-run with column
+            offsets ``off`` (near) and ``off2`` (far)."""
+            ep = e + 1  # padded index of row e
+            mb = (mbase + e) & _INDEX_MASK
+            m = ti.Vector([ti.cast(ti.bit_cast(U[mb + r], ti.i32), mi)
+                           for r in ti.static(range(lanes))]) << pre
+            # diagonal and the own column (0, 0, -+1): rows e-1 and e+1. A missing (0,0,-1)
+            # neighbour means row e-1 is not (i, j, k-1), so its slot (0,0,+1) is 0.
+            a0 = vcoef(U, stride, 0, ep) * vload(P, ep)
+            a0 += vcoef(U, stride, 1, ep - 1) * vload(P, ep - 1)  # slot 1: offset 14
+            a0 += vcoef(U, stride, 1, ep) * vload(P, ep + 1)
+            a1, a2 = V(0.0), V(0.0)
+            for c in ti.static(range(len(_COLUMNS))):
+                j = ep + off[c] - 1  # padded index of the column's (dk = -1) voxel
+                col = V(0.0)
+                for t in ti.static(range(3)):
+                    o = ti.static(_COLUMN_OFFSETS[c][t])
+                    if ti.static(o < CENTER):
+                        # lower entry: S[i,o] = S[nbr[i,o], 26-o], the neighbour's upper slot;
+                        # where the neighbour is missing, row j+t is some other voxel: masked
+                        term = vcoef(U, stride, CENTER - o, j + t) * vload(P, j + t)
+                        col += ti.select(has(m, _BIT[o]), term, V(0.0))
+                    else:
+                        # upper entry: own slot, 0 where the neighbour is missing
+                        col += vcoef(U, stride, o - CENTER, ep) * vload(P, j + t)
+                if ti.static(c % 3 == 0):
+                    a1 += col
+                elif ti.static(c % 3 == 1):
+                    a2 += col
+                else:
+                    a0 += col
+            if ti.static(far):
+                for a in ti.static(range(FAR)):
+                    j = ep + off2[a]
+                    if ti.static(a % 2 == 0):  # -2 along an axis: the neighbour's slot a+1
+                        term = vcoef(U, stride, _UPPER + a // 2, j) * vload(P, j)
+                        a2 += ti.select(has(m, _FAR_BIT + a), term, V(0.0))
+                    else:
+                        a2 += vcoef(U, stride, _UPPER + a // 2, ep) * vload(P, j)
+            return (a0 + a1) + a2
+
+        @ti.func
+        def row(U: ti.template(), mbase, P: ti.template(), stride, e, off, off2):
+            """(Q P)_e of one row, scalar, for the few rows the blocks cannot take (index
+            range, or a column with a gap): ``off`` = first present neighbour of each
+            column minus e, the others follow in k order."""
+            ep = e + 1
+            m = ti.bit_cast(U[mbase + e], ti.i32)
+            acc = ti.cast(U[ep], tdt) * P[ep]
+            if (m >> _BIT[CENTER - 1]) & 1:  # slot 1: offset 14, of row e-1 / of row e
+                acc += ti.cast(U[stride + ep - 1], tdt) * P[ep - 1]
+            if (m >> _BIT[CENTER + 1]) & 1:
+                acc += ti.cast(U[stride + ep], tdt) * P[ep + 1]
+            for c in ti.static(range(len(_COLUMNS))):
+                j = ep + off[c]
+                for t in ti.static(range(3)):
+                    o = ti.static(_COLUMN_OFFSETS[c][t])
+                    if (m >> _BIT[o]) & 1:
+                        if ti.static(o < CENTER):
+                            acc += ti.cast(U[(CENTER - o) * stride + j], tdt) * P[j]
+                        else:
+                            acc += ti.cast(U[(o - CENTER) * stride + ep], tdt) * P[j]
+                        j += 1
+            if ti.static(far):
+                for a in ti.static(range(FAR)):
+                    if (m >> (_FAR_BIT + a)) & 1:
+                        j = ep + off2[a]
+                        if ti.static(a % 2 == 0):
+                            acc += ti.cast(U[(_UPPER + a // 2) * stride + j], tdt) * P[j]
+                        else:
+                            acc += ti.cast(U[(_UPPER + a // 2) * stride + ep], tdt) * P[j]
+            return acc
+
+        @ti.kernel
+        def apply_dot(U: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                      mbase: ti.i32, rbase: ti.i32, n_sub: ti.i32, n_simd: ti.i32, stride: ti.i32,
+                      P: ti.types.ndarray(dtype=tdt, ndim=1),
+                      AP: ti.types.ndarray(dtype=tdt, ndim=1),
+                      pap: ti.types.ndarray(dtype=VD, ndim=1)):
+            """AP = Q P over the sub-runs, and the chunk partials of p·Ap per lane. Two
+            passes: the SIMD sub-runs R[:n_simd] in parallel, then the scalar rows
+            R[n_simd:] on one thread, added to pap[0][0] in order (their code in the same
+            loop stopped LLVM from vectorising the blocks at full width; a second parallel
+            loop costs a ~120 us thread-pool round trip)."""
+            n_chunks = pap.shape[0]
+            n_virtual = ti.max(n_chunks, spread)
+            for t in range(n_virtual):
+                for c in range(_spread(t, n_chunks, n_virtual),
+                               _spread(t + 1, n_chunks, n_virtual)):
+                    s = VD(0.0)
+                    for q in range(c * _SUBRUNS_PER_CHUNK,
+                                   ti.min(n_simd, c * _SUBRUNS_PER_CHUNK + _SUBRUNS_PER_CHUNK)):
+                        start, length = rw(U, rbase, q, _R_START), rw(U, rbase, q, _R_LEN)
+                        off = ti.Vector([rw(U, rbase, q, _R_OFF + h) for h in ti.static(range(8))])
+                        off2 = ti.Vector([0] * FAR)
+                        if ti.static(far):
+                            off2 = ti.Vector([rw(U, rbase, q, _R_OFF + 8 + a)
+                                              for a in ti.static(range(FAR))])
+                        for k in range((length + lanes - 1) // lanes):
+                            e = start + k * lanes
+                            ap = block(U, mbase, P, stride, e, off, off2)
+                            for r in ti.static(range(lanes)):
+                                if k * lanes + r < length:
+                                    AP[e + 1 + r] = ap[r]
+                            valid = ti.Vector([k * lanes + r < length
+                                               for r in ti.static(range(lanes))], dt=ti.i32)
+                            s += ti.select(valid != 0, ti.cast(vload(P, e + 1), ti.f64)
+                                           * ti.cast(ap, ti.f64), VD(0.0))
+                    pap[c] = s
+            ti.loop_config(serialize=True)
+            for q in range(n_simd, n_sub):
+                e = rw(U, rbase, q, _R_START)
+                off = ti.Vector([rw(U, rbase, q, _R_OFF + h) for h in ti.static(range(8))])
+                off2 = ti.Vector([0] * FAR)
+                if ti.static(far):
+                    off2 = ti.Vector([rw(U, rbase, q, _R_OFF + 8 + a) for a in ti.static(range(FAR))])
+                ap = row(U, mbase, P, stride, e, off, off2)
+                AP[e + 1] = ap
+                pap[0][0] += ti.cast(P[e + 1], ti.f64) * ti.cast(ap, ti.f64)
+
+        self.lanes = lanes
+        self.apply_dot = apply_dot
+
+
+def _compact_kernels(dtype, far: bool) -> _CompactKernels:
+    key = ("compact", np.dtype(dtype).name, bool(far))
+    if key not in _KERNELS:
+        _KERNELS[key] = _CompactKernels(dtype, bool(far))
     return _KERNELS[key]
 
 
@@ -394,11 +654,235 @@ def _column_blocks(k: int) -> list:
     return [(a, min(a + width, k)) for a in range(0, k, width)]
 
 
+_HUGE = 2 << 20  # bytes of a transparent huge page (x86-64)
+
+
+def _zeros(shape, dtype) -> np.ndarray:
+    """Zeroed array; from 4 MiB on, 2 MiB-aligned memory advised for transparent huge pages
+    (madvise, Linux): the compact product streams ~17 arrays at once, and 4 KiB pages cost it
+    TLB misses (measured 5-25 % slower, and more variable). Elsewhere plain np.zeros."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    if nbytes < 2 * _HUGE or not hasattr(mmap, "MADV_HUGEPAGE"):
+        return np.zeros(shape, dtype)
+    buf = mmap.mmap(-1, nbytes + _HUGE)  # anonymous: zero-filled
+    raw = np.frombuffer(buf, np.uint8)  # keeps buf alive
+    start = (-raw.ctypes.data) % _HUGE
+    try:
+        buf.madvise(mmap.MADV_HUGEPAGE, start - start % mmap.PAGESIZE,
+                    nbytes + start % mmap.PAGESIZE)
+    except OSError:  # not supported here: plain pages
+        pass
+    return raw[start:start + nbytes].view(dtype).reshape(shape)
+
+
+def _first_offsets(nbr, far, rows) -> np.ndarray:
+    """(len(rows), n_col) offsets of the scalar rows: per column the first present
+    neighbour's index minus the row (0 if none), per far offset its index minus the row."""
+    J = nbr[rows][:, np.array(_COLUMN_OFFSETS)].astype(np.int64)  # (m, 8, 3)
+    p = J >= 0
+    f = np.take_along_axis(J, np.argmax(p, axis=2)[..., None], axis=2)[..., 0]
+    out = np.where(p.any(axis=2), f - rows[:, None], 0)
+    if far is not None:
+        J2 = far[1][rows].astype(np.int64)
+        out = np.concatenate([out, np.where(J2 >= 0, J2 - rows[:, None], 0)], axis=1)
+    return out
+
+
+def _compact_layout(S, nbr, far) -> dict:
+    """The compact layout of a checked stencil (numpy, vectorised over voxels; the loops run
+    over the 8 columns and 6 far offsets). See :class:`CompactStencil`."""
+    n = S.shape[0]
+    rows = np.arange(n, dtype=np.int32)
+    present = nbr >= 0
+    bits = np.zeros(n, np.uint32)
+    for o in range(STENCIL):
+        if o != CENTER:
+            bits |= present[:, o].astype(np.uint32) << np.uint32(_BIT[o])
+    if far is not None:
+        for a in range(FAR):
+            bits |= (far[1][:, a] >= 0).astype(np.uint32) << np.uint32(_FAR_BIT + a)
+    # runs: maximal rows (i, j, k), (i, j, k+1), ... = consecutive band indices
+    cont = np.zeros(n, bool)
+    cont[1:] = nbr[1:, CENTER - 1] == rows[:-1]
+    run_id = np.cumsum(~cont)
+    # per row and column: the offset j - e - dk of its present neighbours j (one value unless
+    # the column has a gap among the row's 3 neighbours)
+    n_col = len(_COLUMNS) + (FAR if far is not None else 0)
+    value = np.zeros((n_col, n), np.int32)
+    defined = np.zeros((n_col, n), bool)
+    gap = np.zeros(n, bool)
+    big = np.iinfo(np.int32).max
+    for c, offs in enumerate(_COLUMN_OFFSETS):
+        J = nbr[:, offs]
+        p = J >= 0
+        cand = J - rows[:, None] - np.array([-1, 0, 1], np.int32)
+        low = np.where(p, cand, big).min(axis=1)
+        high = np.where(p, cand, -big).max(axis=1)
+        defined[c] = p.any(axis=1)
+        gap |= defined[c] & (low != high)
+        value[c] = np.where(defined[c], low, 0)
+    if far is not None:
+        for a in range(FAR):
+            c = len(_COLUMNS) + a
+            defined[c] = far[1][:, a] >= 0
+            value[c] = np.where(defined[c], far[1][:, a] - rows, 0)
+    # sub-runs: split runs where a column's offset changes (a gap in a neighbour column) and
+    # around rows with a gap inside their own 3 neighbours of a column
+    split = ~cont | gap
+    split[1:] |= gap[:-1]
+    for c in range(n_col):
+        last = np.maximum.accumulate(np.where(defined[c], rows, -1))
+        prev = np.empty(n, np.int32)
+        prev[0], prev[1:] = -1, last[:-1]
+        p = np.maximum(prev, 0)
+        split |= defined[c] & (prev >= 0) & (run_id[p] == run_id) & (value[c, p] != value[c])
+    start = np.flatnonzero(split)
+    length = np.diff(np.append(start, n))
+    sub_offsets = np.zeros((len(start), n_col), np.int64)
+    for c in range(n_col):  # the value of the first row of the sub-run that defines it, or 0
+        nxt = np.minimum.accumulate(np.where(defined[c], rows, n)[::-1])[::-1]
+        f = nxt[start]
+        inside = f < start + length
+        sub_offsets[:, c] = np.where(inside, value[c, np.minimum(f, n - 1)], 0)
+    # SIMD sub-runs: every padded index a whole block touches lies in [0, N] (blocks of the
+    # widest lane count, so one layout serves float32 and float64)
+    lanes = _compact_lanes(np.float32)
+    last_row = start + -(-length // lanes) * lanes - 1
+    near = sub_offsets[:, :len(_COLUMNS)]
+    lo = np.minimum((start[:, None] + near).min(axis=1), start)
+    hi = np.maximum((last_row[:, None] + near + 2).max(axis=1), last_row + 2)
+    if far is not None:
+        lo = np.minimum(lo, (start[:, None] + 1 + sub_offsets[:, len(_COLUMNS):]).min(axis=1))
+        hi = np.maximum(hi, (last_row[:, None] + 1 + sub_offsets[:, len(_COLUMNS):]).max(axis=1))
+    simd = (lo >= 0) & (hi <= n) & ~np.logical_or.reduceat(gap, start)
+    scalar_rows = np.flatnonzero(~np.repeat(simd, length))
+    table = np.zeros((int(simd.sum()) + len(scalar_rows), _R_COLS), np.int64)
+    k = int(simd.sum())
+    table[:k, _R_START], table[:k, _R_LEN], table[:k, _R_SIMD] = start[simd], length[simd], 1
+    table[:k, _R_OFF:_R_OFF + n_col] = sub_offsets[simd]
+    table[k:, _R_START], table[k:, _R_LEN] = scalar_rows, 1
+    table[k:, _R_OFF:_R_OFF + n_col] = _first_offsets(nbr, far, scalar_rows)
+    # one float32 array: coefficient slots (0 = Q_ii, 1..13 = offsets 14..26, 14..16 = far
+    # +2 along i, j, k), then the presence bits and the sub-run table as int32 bit patterns
+    slots = _UPPER + (FAR // 2 if far is not None else 0)
+    stride = n + 1 + _TAIL
+    stride += (_STRIDE_REM - stride) % _STRIDE_MOD
+    mbase = slots * stride
+    rbase = mbase + n + _TAIL
+    size = rbase + table.size
+    if size > _INDEX_MASK:
+        raise ValueError(f"band too large for the compact layout ({n} voxels; needs "
+                         f"{size} < 2^30 words)")
+    D = _zeros(size, np.float32)
+    U = D[:mbase].reshape(slots, stride)
+    U[0, 1:n + 1] = S[:, CENTER]
+    U[1:_UPPER, 1:n + 1] = np.where(present[:, CENTER + 1:], S[:, CENTER + 1:], 0).T
+    if far is not None:
+        U[_UPPER:, 1:n + 1] = np.where(far[1][:, 1::2] >= 0, far[0][:, 1::2], 0).T
+    D[mbase:mbase + n].view(np.uint32)[:] = bits
+    D[rbase:].view(np.int32)[:] = table.reshape(-1)
+    return dict(D=D, stride=int(stride), mbase=int(mbase), rbase=int(rbase),
+                n_sub=table.shape[0], n_simd=k, scalar_rows=len(scalar_rows))
+
+
+class CompactStencil:
+    """Q in the compact layout, for fast single-vector products Q·x (float32 or float64).
+
+    Built once from a checked band stencil ``(S, nbr, far)`` (module docstring) by
+    vectorised numpy; :func:`pcg` / :func:`pcg_batched` build one per solve of a single
+    right-hand side and reuse it every iteration. The layout stores 60 bytes per voxel
+    (72 with ``far``) plus the sub-run table (~4 bytes per voxel in a 10-voxel-thick band)
+    against the 216 bytes of (S, nbr):
+
+    * ``U``: Q_ii and the 13 *upper* offsets o > 13 (14 float32 slots, +3 for the far
+      offsets +2), structure of arrays (slot s of every voxel contiguous, voxel i at
+      position i+1 like the padded vectors), zero where the neighbour is missing. A lower
+      entry is read from the neighbour's row: S[i,o] = S[nbr[i,o], 26-o] (o < 13; the
+      symmetry that :func:`check_stencil` verifies to ``rtol``). Voxels in lexicographic
+      order put the lower neighbours' rows (one slab back) in the cache already.
+    * ``M``: one int32 of presence bits per voxel (26 near offsets, 6 far).
+    * sub-runs: maximal runs of consecutive voxels (i, j, k), (i, j, k+1), ... along k
+      (consecutive band indices), split where a neighbour column has a gap. In a sub-run the
+      neighbour at (di, dj, dk) of voxel e is band index ``e + off[di, dj] + dk`` for one
+      offset per column (9 int32 per ~19 voxels in a 10-voxel-thick band), so a block of 4
+      consecutive rows (float32 or float64) reads each term as one contiguous vector:
+      SIMD across rows (:class:`_CompactKernels`), one thread per chunk of 64 sub-runs.
+
+    Rows a block cannot take (a gap inside a column's 3 neighbours, or within a block of the
+    band's ends) are summed one at a time. The product equals the 27-point gather of
+    :func:`apply_Q` with each symmetric pair taken from its upper entry (summed in a
+    different order: ~1e-7 relative in float32, ~1e-16 in float64).
+
+    Attributes: ``n`` voxels, ``far`` (bool), ``nbytes`` of the layout, ``build_seconds``,
+    ``n_subruns``, ``scalar_rows``.
+    """
+
+    def __init__(self, S, nbr, far=None, check: bool = True):
+        t0 = time.perf_counter()
+        S, nbr = check_stencil(S, nbr) if check else _stencil_arrays(S, nbr)
+        far = check_far(far, S) if check else _far_arrays(far, S.shape[0])
+        layout = _compact_layout(S, nbr, far)
+        self.n = S.shape[0]
+        self.far = far is not None
+        self._S, self._nbr, self._far_arrays = S, nbr, far  # the exact path (non-finite x)
+        self._stride = layout["stride"]
+        self._D = layout["D"]
+        self._args = (layout["mbase"], layout["rbase"], layout["n_sub"], layout["n_simd"],
+                      layout["stride"])
+        self.n_subruns = layout["n_sub"]
+        self.scalar_rows = layout["scalar_rows"]
+        self._n_chunks = max(1, -(-layout["n_simd"] // _SUBRUNS_PER_CHUNK))
+        self.nbytes = self._D.nbytes
+        self.build_seconds = time.perf_counter() - t0
+
+    def _apply_dot(self, P: np.ndarray, AP: np.ndarray) -> float:
+        """AP = Q P for padded (N+1,) float32/float64 vectors (P[0] = 0, written AP[0] = 0);
+        returns p·Ap (float64, deterministic). The solvers' product."""
+        ker = _compact_kernels(P.dtype, self.far)
+        part = np.empty((self._n_chunks, ker.lanes))
+        ker.apply_dot(self._D, *self._args, P, AP, part)
+        AP[0] = 0
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite P: the caller checks
+            return float(part.sum())
+
+    def apply(self, x, out=None, padded: bool = False) -> np.ndarray:
+        """``out = Q x`` for one vector; the same arguments and result as :func:`apply_Q`
+        (x (N,) or, with ``padded``, (N+1,) with x[0] = 0; float32 or float64; row sums in
+        x's dtype). Deterministic. With non-finite values in x the product is recomputed by
+        the 27-point gather (a masked-out lane may read a neighbour's inf as 0 * inf)."""
+        x = _numpy(x, "x")
+        rows = self.n + 1 if padded else self.n
+        if x.ndim != 1 or x.shape[0] != rows:
+            raise ValueError(f"x must have shape ({rows},), got {x.shape}")
+        if padded and x[0] != 0:
+            raise ValueError("a padded x must have x[0] = 0")
+        dtype = np.float32 if x.dtype == np.float32 else np.float64
+        if out is None:
+            out = np.empty(rows, dtype)
+        elif out.shape != x.shape or out.dtype != dtype:
+            raise ValueError(f"out must be a {x.shape} {np.dtype(dtype).name} array, got "
+                             f"{out.shape} {out.dtype}")
+        direct = padded and x.dtype == dtype and x.flags.c_contiguous and out.flags.c_contiguous
+        if direct:
+            xp = x
+        else:
+            xp = _zeros(self.n + 1, dtype)
+            xp[1:] = x[1:] if padded else x
+        yp = out if direct else _zeros(self.n + 1, dtype)
+        if not np.isfinite(self._apply_dot(xp, yp)):
+            apply_Q_batched(self._S, self._nbr, xp[:, None], yp[:, None], padded=True,
+                            far=self._far_arrays)
+        if yp is not out:
+            out[:] = yp if padded else yp[1:]
+        return out
+
+
 # -- Q x -------------------------------------------------------------------------------------
 
 def _padded(X: np.ndarray, dtype) -> np.ndarray:
     """(N+1, K) copy of X (N, K) with the zero pad row first."""
-    out = np.zeros((X.shape[0] + 1, X.shape[1]), dtype)
+    out = _zeros((X.shape[0] + 1, X.shape[1]), dtype)
     out[1:] = X
     return out
 
@@ -479,9 +963,10 @@ def apply_Q_batched(S, nbr, X, out=None, padded: bool = False, far=None) -> np.n
 
 # -- PCG -------------------------------------------------------------------------------------
 
-def _pcg_block(ker: _Kernels, op, B, X, dinv, tol: float, maxiter: int) -> list:
+def _pcg_block(ker: _Kernels, product, B, X, dinv, tol: float, maxiter: int) -> list:
     """Jacobi-PCG on the columns of B from the warm start X, in place; B and X are padded
-    (N+1, L) blocks (voxel i in row i+1, row 0 zero), op = (S, nbr, S2, nbr2) flat.
+    (N+1, L) blocks (voxel i in row i+1, row 0 zero); ``product(P, AP)`` writes AP = Q P and
+    returns p·Ap per column (float64, deterministic); ``ker`` supplies the vector updates.
 
     Returns one dict per column: converged, iterations, relative_residual (the true
     ||b - Q x|| / ||b|| of the returned x), residual_history (the relative residual tested
@@ -491,15 +976,21 @@ def _pcg_block(ker: _Kernels, op, B, X, dinv, tol: float, maxiter: int) -> list:
     n_chunks = -(-n // CHUNK)
     part_a = np.zeros((n_chunks, lanes))
     part_b = np.zeros((n_chunks, lanes))
-    R, P, AP = np.zeros_like(B), np.zeros_like(B), np.zeros_like(B)
+    R, P, AP = (_zeros(B.shape, B.dtype) for _ in range(3))
     b_norm = np.sqrt(np.einsum("ij,ij->j", B, B, dtype=np.float64))
     zero_rhs = b_norm == 0
     X[:, zero_rhs] = 0  # b = 0: the solution is x = 0
     scale = np.where(zero_rhs, 1.0, b_norm)
     every = np.ones(lanes, np.int32)
 
+    def residual(mask):
+        """R = B - Q X in the ``mask`` lanes, chunk partials of r·r and r·M^-1 r (AP is
+        scratch)."""
+        product(X, AP)
+        ker.subtract(B, AP, dinv, mask, R, part_a, part_b)
+
     # r = b - Q x0 ; relative residual ||r|| / ||b||
-    ker.residual(op, B, X, dinv, every, R, AP, part_a, part_b)
+    residual(every)
     rr, rz = part_a.sum(axis=0), part_b.sum(axis=0)
     rel = np.sqrt(rr) / scale
     history = [[float(v)] for v in rel]
@@ -516,8 +1007,7 @@ def _pcg_block(ker: _Kernels, op, B, X, dinv, tol: float, maxiter: int) -> list:
         it += 1
         active = status == _RUNNING
         # Ap = Q p ; pAp = p·Ap
-        ker.apply_dot(*op, P, AP, part_a)
-        pap = part_a.sum(axis=0)
+        pap = product(P, AP)
         broken = active & ~(np.isfinite(pap) & (pap > 0))
         for k in np.flatnonzero(broken):
             reasons[k] = (f"breakdown at iteration {it}: p·Ap = {pap[k]:.3g} (Q is not "
@@ -539,7 +1029,7 @@ def _pcg_block(ker: _Kernels, op, B, X, dinv, tol: float, maxiter: int) -> list:
         candidates = active & (rel <= tol)
         restart = np.zeros(lanes, bool)
         if candidates.any():
-            ker.residual(op, B, X, dinv, candidates.astype(np.int32), R, AP, part_a, part_b)
+            residual(candidates.astype(np.int32))
             true_rel = np.sqrt(part_a.sum(axis=0)) / scale
             rz_new = np.where(candidates, part_b.sum(axis=0), rz_new)
             for k in np.flatnonzero(candidates):
@@ -565,7 +1055,7 @@ def _pcg_block(ker: _Kernels, op, B, X, dinv, tol: float, maxiter: int) -> list:
     # Columns that stopped without converging: report the true residual of the returned x.
     unfinished = status != _CONVERGED
     if unfinished.any():
-        ker.residual(op, B, X, dinv, unfinished.astype(np.int32), R, AP, part_a, part_b)
+        residual(unfinished.astype(np.int32))
         true_rel = np.sqrt(part_a.sum(axis=0)) / scale
         for k in np.flatnonzero(unfinished):
             history[k][-1] = float(true_rel[k])
@@ -577,6 +1067,19 @@ def _pcg_block(ker: _Kernels, op, B, X, dinv, tol: float, maxiter: int) -> list:
     return [dict(converged=bool(status[k] == _CONVERGED), iterations=int(iterations[k]),
                  relative_residual=history[k][-1], residual_history=history[k],
                  restarts=int(restarts[k]), reason=reasons[k]) for k in range(lanes)]
+
+
+def _product(ker: _Kernels, op, compact, n: int, lanes: int):
+    """``product(P, AP) -> p·Ap`` (lanes,) float64 for :func:`_pcg_block`: the compact
+    layout for one column, else the 27-point gather of ``ker``."""
+    if compact is not None:
+        return lambda P, AP: np.array([compact._apply_dot(P.reshape(-1), AP.reshape(-1))])
+    part = np.zeros((-(-n // CHUNK), lanes))
+
+    def gather(P, AP):
+        ker.apply_dot(*op, P, AP, part)
+        return part.sum(axis=0)
+    return gather
 
 
 def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
@@ -620,10 +1123,13 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
         raise ValueError(f"X0 must have the shape of B {B.shape}, got {X0.shape}")
     dinv = 1.0 / S[:, CENTER].astype(np.float64)
     X = np.empty(B.shape, dtype)
+    # one right-hand side: the compact layout, built once for all iterations
+    compact = CompactStencil(S, nbr, far, check=False) if B.shape[1] == 1 else None
     columns = []
     for a, b in _column_blocks(B.shape[1]):
-        Xb = np.zeros((n + 1, b - a), dtype) if X0 is None else _padded(X0[:, a:b], dtype)
-        columns += _pcg_block(_kernels(b - a, dtype, far is not None), op,
+        ker = _kernels(b - a, dtype, far is not None)
+        Xb = _zeros((n + 1, b - a), dtype) if X0 is None else _padded(X0[:, a:b], dtype)
+        columns += _pcg_block(ker, _product(ker, op, compact, n, b - a),
                               _padded(B[:, a:b], dtype), Xb, dinv, tol, maxiter)
         X[:, a:b] = Xb[1:]
     n_bad = sum(not c["converged"] for c in columns)

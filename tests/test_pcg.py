@@ -152,6 +152,47 @@ def test_stencil_matches_csr_assembled_independently(large):
         assert np.array_equal(Yp[1:], Y) and not Yp[0].any()
 
 
+def test_compact_product_matches_csr_on_a_band_with_gaps(large):
+    """The solvers' single-vector product (CompactStencil: upper half of S, presence bits,
+    SIMD sub-runs) equals the CSR matrix, with the curvature prior's far part, on a band
+    with holes punched in it (sub-runs split by gaps, rows summed one at a time)."""
+    from kernels.prior import add_curvature_prior
+    rng = np.random.default_rng(5)
+    ijk, dist = shell_band(15.0, 3.5)
+    keep = rng.random(len(ijk)) > 0.03  # scattered holes: gaps inside neighbour columns
+    ijk, dist = ijk[keep], dist[keep]
+    nbr = nbr_reference(ijk)
+    S, _, _ = posterior(ijk, dist, nbr, seed=2)
+    S2, nbr2 = add_curvature_prior(S, nbr, lam2=0.5)  # adds its near entries into S
+    r, o = np.nonzero(nbr >= 0)
+    Q_near = sp.csr_matrix((S[r, o].astype(np.float64), (r, nbr[r, o])), shape=(len(S),) * 2)
+    i, a = np.nonzero(nbr2 >= 0)
+    Q_far = sp.csr_matrix((S2[i, a].astype(np.float64), (i, nbr2[i, a])), shape=Q_near.shape)
+    for far in (None, (S2, nbr2)):
+        op = kp.CompactStencil(S, nbr, far)
+        assert 0 < op.scalar_rows < len(S) / 4  # both paths (SIMD sub-runs, single rows) run
+        assert op.nbytes < 216 * len(S)  # smaller than (S, nbr), even with many gaps
+        Qf = Q_near if far is None else Q_near + Q_far
+        x64 = rng.standard_normal(len(S))
+        assert rel(op.apply(x64), Qf @ x64) < 1e-12
+        x32 = x64.astype(np.float32)
+        assert rel(op.apply(x32), Qf @ x32.astype(np.float64)) < 1e-5
+        assert rel(op.apply(x32), kp.apply_Q(S, nbr, x32, far=far)) < 1e-6
+        # padded (the solvers' layout) and deterministic
+        xp = np.concatenate([[0.0], x64])
+        yp = np.full_like(xp, np.nan)
+        op.apply(xp, yp, padded=True)
+        assert yp[0] == 0 and np.array_equal(yp[1:], op.apply(x64))
+        # a non-finite x gives the exact product's inf/nan pattern (no 0 * inf = nan leak)
+        x_inf = x64.copy()
+        x_inf[100] = np.inf
+        y = op.apply(x_inf)
+        np.testing.assert_array_equal(np.isfinite(y),
+                                      np.isfinite(kp.apply_Q(S, nbr, x_inf, far=far)))
+    with pytest.raises(ValueError, match="shape"):
+        op.apply(np.zeros(len(S) + 1))
+
+
 def test_bad_stencils_are_rejected(small):
     S, nbr = small["S"], small["nbr"]
     kp.check_stencil(S, nbr)  # the valid one passes

@@ -212,19 +212,33 @@ def bench_speed(args) -> dict:
            for k, v in dict(x32=x32, x64=x64, X=X).items()}
     out = {k: np.empty_like(v) for k, v in pad.items()}
     y32, Y = np.empty_like(x32), np.empty_like(X)
+    # the solver's single-vector layout, built once per solve (pcg checks the stencil first)
+    t_check = best_of(lambda: kp.check_stencil(S, nbr), 1)
+    ops = []
+    t_layout = best_of(lambda: ops.append(kp.CompactStencil(S, nbr, check=False)), min(args.repeats, 2),
+                       warm_up=False)
+    op = ops[-1]
     t_compile = time.perf_counter()
-    kp.apply_Q(S, nbr, pad["x32"], out["x32"], padded=True)
-    kp.apply_Q(S, nbr, pad["x64"], out["x64"], padded=True)
+    op.apply(pad["x32"], out["x32"], padded=True)
+    op.apply(pad["x64"], out["x64"], padded=True)
+    y_gather = np.empty_like(pad["x64"])
+    kp.apply_Q(S, nbr, pad["x32"], np.empty_like(pad["x32"]), padded=True)
+    kp.apply_Q(S, nbr, pad["x64"], y_gather, padded=True)
     kp.apply_Q_batched(S, nbr, pad["X"], out["X"], padded=True)
     t_compile = time.perf_counter() - t_compile
     ref = csr64 @ x64
     err = float(np.linalg.norm(out["x64"][1:] - ref) / np.linalg.norm(ref))
+    err_gather = float(np.linalg.norm(y_gather[1:] - ref) / np.linalg.norm(ref))
     r = args.repeats
-    sec = {  # the stencil on the solver's padded layout (no copies), then the plain call
-        "stencil_f32": best_of(lambda: kp.apply_Q(S, nbr, pad["x32"], out["x32"], padded=True), r),
-        "stencil_f64": best_of(lambda: kp.apply_Q(S, nbr, pad["x64"], out["x64"], padded=True), r),
+    g32, g64 = np.empty_like(pad["x32"]), np.empty_like(pad["x64"])
+    sec = {  # on the solver's padded layout (no copies), then the plain calls
+        "stencil_f32": best_of(lambda: op.apply(pad["x32"], out["x32"], padded=True), r),
+        "stencil_f64": best_of(lambda: op.apply(pad["x64"], out["x64"], padded=True), r),
+        "gather_f32": best_of(lambda: kp.apply_Q(S, nbr, pad["x32"], g32, padded=True), r),
+        "gather_f64": best_of(lambda: kp.apply_Q(S, nbr, pad["x64"], g64, padded=True), r),
         "stencil_k16": best_of(lambda: kp.apply_Q_batched(S, nbr, pad["X"], out["X"], padded=True),
                                r),
+        "compact_plain_f32": best_of(lambda: op.apply(x32, y32), r),
         "apply_Q_f32": best_of(lambda: kp.apply_Q(S, nbr, x32, y32), r),
         "apply_Q_k16": best_of(lambda: kp.apply_Q_batched(S, nbr, X, Y), r),
         "csr_f32": best_of(lambda: csr32 @ x32, r),
@@ -234,18 +248,27 @@ def bench_speed(args) -> dict:
     ns = {k: v / n * 1e9 for k, v in sec.items()}
     k16 = ns["stencil_k16"] / 16
     print(f"\nQ·x, ns per band voxel (best of {r}; first calls incl. compile/cache load "
-          f"{t_compile:.2f} s; stencil vs CSR rel. diff {err:.1e}). Stencil on the solver's "
-          f"layout:")
-    print(f"  stencil, float32 vector        {ns['stencil_f32']:8.2f}   CSR float32 "
-          f"{ns['csr_f32']:8.2f}   ratio {ns['csr_f32'] / ns['stencil_f32']:.2f}x")
-    print(f"  stencil, float64 vector        {ns['stencil_f64']:8.2f}   CSR float64 "
-          f"{ns['csr_f64']:8.2f}   ratio {ns['csr_f64'] / ns['stencil_f64']:.2f}x")
+          f"{t_compile:.2f} s; vs CSR float64 rel. diff: compact {err:.1e}, gather "
+          f"{err_gather:.1e}). On the solver's padded layout:")
+    print(f"  compact (the solvers' product), float32 {ns['stencil_f32']:7.2f}   CSR float32 "
+          f"{ns['csr_f32']:7.2f}   ratio {ns['csr_f32'] / ns['stencil_f32']:.2f}x")
+    print(f"  compact (the solvers' product), float64 {ns['stencil_f64']:7.2f}   CSR float64 "
+          f"{ns['csr_f64']:7.2f}   ratio {ns['csr_f64'] / ns['stencil_f64']:.2f}x")
+    print(f"  27-point gather (apply_Q), float32 / float64 {ns['gather_f32']:.2f} / "
+          f"{ns['gather_f64']:.2f}   ratio {ns['csr_f32'] / ns['gather_f32']:.2f}x / "
+          f"{ns['csr_f64'] / ns['gather_f64']:.2f}x")
     print(f"  stencil, K=16 block, per vector {k16:7.2f}   CSR float32 {ns['csr_f32']:8.2f}"
           f"   ratio {ns['csr_f32'] / k16:.2f}x   (all 16: {ns['stencil_k16']:.1f})")
     print(f"  CSR float32 @ (N,16) block, per vector {ns['csr_f32_k16'] / 16:.2f}: "
           f"ratio to the stencil block {ns['csr_f32_k16'] / ns['stencil_k16']:.2f}x")
-    print(f"  plain apply_Q / apply_Q_batched (copy into the padded layout): "
-          f"{ns['apply_Q_f32']:.2f} / {ns['apply_Q_k16'] / 16:.2f} per vector")
+    print(f"  plain calls (copy into the padded layout): CompactStencil.apply "
+          f"{ns['compact_plain_f32']:.2f}, apply_Q {ns['apply_Q_f32']:.2f}, apply_Q_batched "
+          f"{ns['apply_Q_k16'] / 16:.2f} per vector")
+    print(f"  compact layout: {op.nbytes / n:.1f} bytes per voxel (S, nbr: 216), "
+          f"{op.n_subruns:,} sub-runs ({n / op.n_subruns:.1f} voxels each), {op.scalar_rows} "
+          f"rows summed one at a time; built in {t_layout:.2f} s ({t_layout / n * 1e9:.0f} ns "
+          f"per voxel = {t_layout / sec['stencil_f64']:.0f} float64 products), after "
+          f"check_stencil {t_check:.2f} s")
 
     # MAP solve and probes: compile first (a 1-iteration call), then best of 2 runs
     rs = min(r, 2)
@@ -291,6 +314,10 @@ def bench_speed(args) -> dict:
                 load_average=os.getloadavg()[0], ns_per_voxel=ns, seconds=sec,
                 ratio_f32=ns["csr_f32"] / ns["stencil_f32"],
                 ratio_f64=ns["csr_f64"] / ns["stencil_f64"],
+                ratio_gather_f32=ns["csr_f32"] / ns["gather_f32"],
+                ratio_gather_f64=ns["csr_f64"] / ns["gather_f64"],
+                compact=dict(build_s=t_layout, check_s=t_check, bytes_per_voxel=op.nbytes / n,
+                             subruns=op.n_subruns, scalar_rows=op.scalar_rows),
                 ratio_k16_per_vector=ns["csr_f32"] / k16,
                 pcg=dict(iterations=info["iterations"], seconds=t_pcg,
                          converged=info["converged"],
