@@ -180,6 +180,154 @@ def synth(scene, out, sets, quiet):
                    f"gt_mesh.ply to {path}/")
 
 
+def _print_ranking(result: dict, top: int = 5) -> None:
+    import numpy as np
+
+    st = result["settings"]
+    click.echo(f"{len(result['candidates'])} candidates at {st['radius_m']:.3f} m around "
+               f"({', '.join(f'{v:.3f}' for v in st['target'])}); seen cells {st['seen_cells']:,} "
+               f"of {st['cell_m'] * 1000:.1f} mm")
+    click.echo("rank  index  utility [m^2]  known      unknown    unknown cells  hits  camera at")
+    for c in result["candidates"][:top]:
+        eye = np.asarray(c["pose"])[:3, 3]
+        click.echo(f"{c['rank']:4d}  {c['index']:5d}  {c['utility']:.3e}      {c['known']:.3e}  "
+                   f"{c['unknown']:.3e}  {c['unknown_cells']:13,d}  {c['hit_fraction']:4.0%}  "
+                   f"({', '.join(f'{v:.3f}' for v in eye)})")
+
+
+@cli.command()
+@click.argument("out_dir", type=click.Path(file_okay=False))
+@click.option("--candidates", type=click.Choice(["sphere", "hemisphere", "ring", "file"]),
+              default=None, help="Candidate generator [default: the run's nbv.candidates, "
+              "hemisphere].")
+@click.option("--n", "n_candidates", type=int, default=None,
+              help="Number of generated candidates [default: 48].")
+@click.option("--radius", type=float, default=None,
+              help="Distance of the candidates from the target, metres [default: 3x the "
+              "band's bounding radius].")
+@click.option("--poses", type=click.Path(dir_okay=True), default=None,
+              help="Candidate poses file (one row-major 4x4 T_W_C per line) or folder of 4x4 "
+              "files; implies --candidates file.")
+@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE",
+              help="Other overrides, e.g. --set nbv.stride=4.")
+@click.option("--top", type=int, default=5, show_default=True, help="Rows to print.")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet):
+    """Rank next-best views for the outputs of a run (OUT_DIR of `bftaichi run` or `fuse`).
+
+    Reads OUT_DIR/config.toml and band.npz, re-reads the run's frames to mark the space they
+    saw, scores every candidate by the posterior variance its depth image would remove
+    (known surface) plus the unseen space it would reveal, and writes OUT_DIR/nbv.json (each
+    candidate's pose, utility and rank); report.json gains the top view.
+
+    \b
+    Example:
+      bftaichi run scenes/bunny.toml --out out/bunny
+      bftaichi nbv out/bunny --n 48 --top 3
+    """
+    import json as _json
+
+    from . import backend
+    from .config import load_config
+    from .errors import DataError
+    from .io import write_json
+    from .nbv import nbv_summary, rank_run
+    from .pipeline import open_frames
+    from .posterior import Posterior
+
+    out = Path(out_dir)
+    for name in ("config.toml", "band.npz"):
+        if not (out / name).exists():
+            raise DataError(f"{out / name} does not exist: OUT_DIR must hold the outputs of "
+                            "`bftaichi run` or `bftaichi fuse`")
+    extra = list(sets)
+    if poses:
+        extra += ["nbv.candidates=file", f"nbv.poses_file={_json.dumps(str(Path(poses).resolve()))}"]
+    elif candidates:
+        extra.append(f"nbv.candidates={candidates}")
+    if n_candidates is not None:
+        extra.append(f"nbv.n_candidates={n_candidates}")
+    if radius is not None:
+        extra.append(f"nbv.radius_m={radius}")
+    cfg = load_config(out / "config.toml", extra)
+    post = Posterior.load(out / "band.npz")
+    frames = open_frames(cfg)
+    backend.init(cfg.run.arch)
+    result = rank_run(post, cfg, frames, out)
+    report_path = out / "report.json"
+    if report_path.exists():
+        try:
+            report = _json.loads(report_path.read_text())
+        except ValueError:
+            raise DataError(f"{report_path} is not valid JSON") from None
+        report["nbv"] = nbv_summary(result)
+        write_json(report_path, report)
+    if not quiet:
+        _print_ranking(result, top)
+        click.echo(f"wrote {out / 'nbv.json'}")
+
+
+@cli.command()
+@click.argument("scene", required=False, type=click.Path(dir_okay=False))
+@click.option("--out", "-o", type=click.Path(file_okay=False), default=None,
+              help="Output folder [default: out/scan-<scene name>].")
+@click.option("--policies", default="bayes,coverage,farthest,random", show_default=True,
+              help="Comma-separated policies: bayes, coverage, farthest, random.")
+@click.option("--steps", type=int, default=None, help="Views added after the initial ones "
+              "[default: nbv.steps = 12].")
+@click.option("--candidates", "n_candidates", type=int, default=None,
+              help="Number of candidate views [default: nbv.n_candidates = 48].")
+@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE",
+              help="Override a scene value, e.g. --set nbv.random_seeds=5.")
+@click.option("--arch", type=ARCH, default=None, help="Taichi backend [default: cpu].")
+@click.option("--overwrite", is_flag=True, help="Replace an earlier scan in --out.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress or summary.")
+def scan(scene, out, policies, steps, n_candidates, sets, arch, overwrite, quiet):
+    """Closed-loop active scanning of a synthetic SCENE (default: the built-in tabletop).
+
+    Every policy starts from the same 2 views and adds one view at a time from the same
+    candidate set; each new view is rendered (with the scene's noise) from the true mesh,
+    fused, and the posterior mesh is scored against the truth. Writes scan.json (metrics per
+    step per policy, the area under F@10mm against views, views needed to reach F@10mm >= 0.9)
+    and scan.png (F@10mm and completeness against views).
+
+    \b
+    Example:
+      bftaichi scan scenes/bunny.toml --out out/scan-bunny
+      bftaichi scan --policies bayes,random --steps 4 --out out/scan-quick
+    """
+    from .config import load_config
+    from .scan import scan as run_scan
+
+    extra = _overrides(arch, sets)
+    if steps is not None:
+        extra.append(f"nbv.steps={steps}")
+    if n_candidates is not None:
+        extra.append(f"nbv.n_candidates={n_candidates}")
+    cfg = load_config(scene, extra)
+    chosen = tuple(p.strip() for p in policies.split(",") if p.strip())
+
+    def show(policy, seed, rec):
+        click.echo(f"  {policy}{'' if policy != 'random' else f' (seed {seed})'}: "
+                   f"{rec['views']} views, F@10mm {rec['fscore@10mm']:.3f}, completeness "
+                   f"{rec['completeness_mm']:.2f} mm", err=True)
+
+    out = Path(out or Path("out") / f"scan-{cfg.scene.name}")
+    report = run_scan(cfg, out, chosen, overwrite=overwrite, progress=None if quiet else show)
+    if not quiet:
+        click.echo(f"scan of {report['scene']}: {report['candidates']} candidates, "
+                   f"initial views {report['initial_views']}, {report['steps']} steps "
+                   f"({report['seconds']:.0f} s)")
+        click.echo("policy     AUC F@10mm  views to F@10mm>=0.9  final F@10mm  final comp. (mm)")
+        for policy, res in report["policies"].items():
+            s = res["summary"]
+            reach = s["views_to_f10_0.9"]
+            click.echo(f"{policy:10s} {s['auc_f10']:.4f}      {reach if reach else 'never':>8}"
+                       f"              {s['final_f10']:.3f}         "
+                       f"{s['final_completeness_mm']:.2f}")
+        click.echo(f"outputs in {out}/ (scan.json, scan.png)")
+
+
 @cli.command(name="eval")
 @click.argument("pred", type=click.Path(dir_okay=False))
 @click.argument("gt", type=click.Path(dir_okay=False))

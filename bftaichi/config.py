@@ -38,6 +38,7 @@ __all__ = [
     "PriorConfig",
     "SolverConfig",
     "RunConfig",
+    "NBVConfig",
     "load_config",
 ]
 
@@ -450,6 +451,103 @@ class SolverConfig:
 
 
 @dataclass
+class NBVConfig:
+    """``[nbv]``: next-best-view planning (DESIGN.md 3.8) and the closed-loop ``bftaichi scan``.
+
+    Candidates look at ``target`` from ``radius_m``; each is scored by the expected reduction of
+    the posterior variance its depth image would bring (:mod:`bftaichi.nbv`)."""
+
+    enabled: bool = False
+    """``bftaichi run`` ranks the candidates at the end of the run and writes ``nbv.json``."""
+
+    candidates: str = "hemisphere"
+    """``sphere`` / ``hemisphere`` (Fibonacci points between ``min_elevation_deg`` and
+    ``max_elevation_deg``; ``hemisphere`` starts at 10 deg above the horizon unless
+    ``min_elevation_deg`` says otherwise), ``ring`` (a horizontal circle at ``height_m``) or
+    ``file`` (``poses_file``)."""
+
+    n_candidates: int = 48
+    """Number of generated candidate views."""
+
+    radius_m: float = 0.0
+    """Distance of the candidates from ``target``, metres; 0 = ``radius_scale`` times the radius
+    of the band's bounding sphere (``bftaichi scan``: the scene's ``synthetic.cam_radius_m``)."""
+
+    radius_scale: float = 3.0
+    """See ``radius_m``."""
+
+    min_elevation_deg: float = -90.0
+    """Lowest candidate elevation above the target, degrees (``hemisphere``: at least 10)."""
+
+    max_elevation_deg: float = 80.0
+    """Highest candidate elevation, degrees (straight down views are rarely reachable)."""
+
+    height_m: float = 0.0
+    """Height of the ``ring`` above the target, metres."""
+
+    target: list[float] = field(default_factory=list)
+    """World point the candidates look at; empty = the centre of the band's bounding box
+    (``bftaichi scan``: ``synthetic.look_at``)."""
+
+    poses_file: str = ""
+    """``candidates = "file"``: a text file with one 4x4 ``T_W_C`` per line (16 numbers, row
+    major) or a folder of ``*.txt`` files holding one 4x4 matrix each."""
+
+    stride: int = 0
+    """Pixel stride of a candidate's predicted depth image and hypothetical observations;
+    0 = ``observation.stride``. A larger stride is faster; the information is scaled by
+    ``(stride / observation.stride)^2`` so utilities stay comparable."""
+
+    eps_voxels: float = 1.0
+    """``Omega_eps``: the utility sums over voxels with ``|mu| <= eps_voxels * voxel``."""
+
+    coverage_cells: int = 96
+    """Cells along the longest side of the coverage grid (seen / unknown space) over the region
+    of interest; the cell is never smaller than a voxel."""
+
+    miss_as_free: bool = True
+    """A pixel without depth marks its ray as seen free space (up to ``scene.depth_max_m``):
+    right for synthetic scenes and for sensors whose missing returns are sky or far range;
+    set false for sensors with many dropouts on near surfaces."""
+
+    roi_scale: float = 1.5
+    """Region of interest: a cube around the band's bounding box centre whose side is this times
+    the box's longest side (``bftaichi scan``: around ``target``, side ``2 * radius / roi_scale``
+    capped by the scene)."""
+
+    steps: int = 12
+    """``bftaichi scan``: views added after the initial ones."""
+
+    initial_views: int = 2
+    """``bftaichi scan``: views every policy starts from (the same, seeded by ``run.seed``)."""
+
+    random_seeds: int = 3
+    """``bftaichi scan``: the ``random`` policy's result is the mean over this many seeds."""
+
+    def check(self) -> None:
+        _check_choice("nbv.candidates", self.candidates, ("sphere", "hemisphere", "ring", "file"))
+        _check_range("nbv.n_candidates", self.n_candidates, 1, 100_000)
+        _check_range("nbv.radius_m", self.radius_m, 0.0)
+        _check_range("nbv.radius_scale", self.radius_scale, 0.1, 1000.0)
+        _check_range("nbv.min_elevation_deg", self.min_elevation_deg, -90.0, 90.0)
+        _check_range("nbv.max_elevation_deg", self.max_elevation_deg, -90.0, 90.0)
+        if self.min_elevation_deg > self.max_elevation_deg:
+            raise ConfigError(f"nbv.min_elevation_deg = {self.min_elevation_deg} is above "
+                              f"nbv.max_elevation_deg = {self.max_elevation_deg}")
+        if self.target and len(self.target) != 3:
+            raise ConfigError(f"nbv.target must be empty or [x, y, z], got {self.target}")
+        if self.candidates == "file" and not self.poses_file:
+            raise ConfigError("nbv.candidates = 'file' needs nbv.poses_file")
+        _check_range("nbv.stride", self.stride, 0, 64)
+        _check_range("nbv.eps_voxels", self.eps_voxels, 0.0, 100.0, lo_open=True)
+        _check_range("nbv.coverage_cells", self.coverage_cells, 8, 512)
+        _check_range("nbv.roi_scale", self.roi_scale, 0.1, 100.0)
+        _check_range("nbv.steps", self.steps, 1, 1000)
+        _check_range("nbv.initial_views", self.initial_views, 1, 1000)
+        _check_range("nbv.random_seeds", self.random_seeds, 1, 100)
+
+
+@dataclass
 class RunConfig:
     """``[run]``: how the run executes."""
 
@@ -481,6 +579,7 @@ class Config:
     prior: PriorConfig = field(default_factory=PriorConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    nbv: NBVConfig = field(default_factory=NBVConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
     def check(self) -> "Config":
@@ -592,6 +691,7 @@ def resolve_paths(cfg: Config, base: Path) -> Config:
     """Make data / mesh paths absolute against ``base`` (the scene file's folder)."""
     cfg.scene.data = _resolve_path(cfg.scene.data, base)
     cfg.scene.gt_mesh = _resolve_path(cfg.scene.gt_mesh, base)
+    cfg.nbv.poses_file = _resolve_path(cfg.nbv.poses_file, base)
     from .synthetic import PRIMITIVES  # local import: synthetic imports config types
 
     if cfg.synthetic.mesh not in PRIMITIVES:

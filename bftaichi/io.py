@@ -126,11 +126,13 @@ def ensure_out_dir(out: str | os.PathLike) -> Path:
     return out
 
 
-def prepare_out_dir(out: str | os.PathLike, overwrite: bool = False) -> Path:
-    """:func:`ensure_out_dir`, and refuse a folder that already holds a run's outputs unless
-    ``overwrite``. Raises BftaichiError naming the folder."""
+def prepare_out_dir(out: str | os.PathLike, overwrite: bool = False,
+                    marker: str | None = None) -> Path:
+    """:func:`ensure_out_dir`, and refuse a folder that already holds a run's outputs (or the
+    file ``marker``, for commands that write other outputs) unless ``overwrite``. Raises
+    BftaichiError naming the folder."""
     out = ensure_out_dir(out)
-    existing = [m for m in RUN_MARKERS if (out / m).exists()]
+    existing = [m for m in ((marker,) if marker else RUN_MARKERS) if (out / m).exists()]
     if existing and not overwrite:
         raise BftaichiError(
             f"output folder {out} already holds a run ({', '.join(existing)}); "

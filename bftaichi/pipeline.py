@@ -21,7 +21,7 @@ import trimesh
 
 from . import __version__, backend
 from .config import Config, parse_slice, save_config
-from .errors import DataError, NoSurfaceError
+from .errors import ConfigError, DataError, NoSurfaceError
 from .fusion import TSDFVolume
 from .io import prepare_out_dir, write_json, write_mesh_ply, write_npz
 
@@ -156,6 +156,9 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     NoSurfaceError when no voxel was observed (then no mesh is written).
     """
     cfg.check()
+    if cfg.nbv.enabled and cfg.run.stages != "full":
+        raise ConfigError("nbv.enabled = true needs the posterior: run.stages must be 'full', "
+                          f"not {cfg.run.stages!r}")
     timer = _Timer()
     t_start = time.perf_counter()
     with timer("load"):  # before touching the output folder: bad data leaves nothing behind
@@ -256,5 +259,12 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
                     "cpus": os.cpu_count()},
         "config": cfg.to_dict(),
     }
+    if post is not None and cfg.nbv.enabled:
+        from .nbv import nbv_summary, rank_run
+
+        with timer("nbv"):
+            report["nbv"] = nbv_summary(rank_run(post, cfg, frames, out))
+        report["seconds"]["nbv"] = timer.seconds["nbv"]
+        report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
     write_json(out / "report.json", report)
     return report

@@ -34,6 +34,8 @@ class Posterior:
         variance: probe stats (probes, method, iterations, not_converged).
         observations: counts of the observation pass.
         seconds: wall time of each sub-stage (band, observe, prior, map, variance).
+        precision: ``(S, nbr, far)`` of the solved posterior (:mod:`kernels.pcg` stencil of Q),
+            kept in memory for planning and tests (not saved); None for a loaded posterior.
     """
 
     ijk: np.ndarray
@@ -47,6 +49,32 @@ class Posterior:
     variance: dict = field(default_factory=dict)
     observations: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
+    precision: tuple | None = field(default=None, repr=False)
+
+    @classmethod
+    def load(cls, path) -> "Posterior":
+        """The posterior saved as ``band.npz`` by a run (``mean`` and ``var`` must be there:
+        a ``run.stages = "tsdf_only"`` run has no posterior). Raises DataError naming the file."""
+        from .errors import DataError
+
+        try:
+            with np.load(path) as z:
+                data = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as e:
+            raise DataError(f"{path}: cannot read the band ({e})") from None
+        missing = [k for k in ("ijk", "voxel_size", "mean", "var", "tsdf", "weight")
+                   if k not in data]
+        if missing:
+            hint = " (a run.stages = 'tsdf_only' run has no posterior)" if "mean" in missing else ""
+            raise DataError(f"{path}: missing arrays {', '.join(missing)}{hint}")
+        n = len(data["ijk"])
+        if data["ijk"].shape != (n, 3) or any(data[k].shape != (n,) for k in
+                                              ("mean", "var", "tsdf", "weight")):
+            raise DataError(f"{path}: arrays ijk (N, 3) and mean/var/tsdf/weight (N,) disagree")
+        return cls(ijk=data["ijk"].astype(np.int32), voxel_size=float(data["voxel_size"]),
+                   mean=data["mean"].astype(np.float32), var=data["var"].astype(np.float32),
+                   tsdf=data["tsdf"].astype(np.float32),
+                   weight=data["weight"].astype(np.float32), core=data["weight"] > 0)
 
     @property
     def sigma(self) -> np.ndarray:
@@ -77,12 +105,16 @@ class Posterior:
         return mesh
 
 
-def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None) -> Posterior:
+def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_start=None,
+                    variance: bool = True) -> Posterior:
     """Build the band from the bootstrap ``voxels`` (:meth:`TSDFVolume.export`), fuse the
     observations of ``frames``, solve the MAP and estimate the variance.
 
     ``frame_iter(frames, desc)`` yields the frames (the pipeline passes a prefetching iterator
-    with a progress bar); default: plain iteration.
+    with a progress bar); default: plain iteration. ``warm_start``: an earlier Posterior whose
+    mean starts PCG at the voxels both bands share (the TSDF elsewhere), as when frames are
+    added one at a time. ``variance=False`` skips the probes (``var`` is then the conditional
+    variance ``1/Q_ii``, a lower bound, and ``variance`` stats say so).
     """
     from kernels.band import build_band
     from kernels.observe import Observer
@@ -128,16 +160,23 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None) -> Poste
     lap("prior")
 
     s = cfg.solver
-    mean, info = pcg(S, band["nbr"], h, band["x0"], tol=s.tol, maxiter=s.maxiter, far=far)
+    x0 = band["x0"]
+    if warm_start is not None and len(warm_start.ijk):
+        x0 = _carry_over(warm_start, band["ijk"], x0)
+    mean, info = pcg(S, band["nbr"], h, x0, tol=s.tol, maxiter=s.maxiter, far=far)
     lap("map")
-    var, vinfo = probe_variance(S, band["nbr"], n_probes=s.probes, seed=s.seed,
-                                method=s.probe_method, tol=s.probe_tol, maxiter=s.maxiter,
-                                ijk=band["ijk"], far=far)
-    # The probe estimate can dip below the conditional variance 1/Q_ii (or below 0) where few
-    # probes average out; the marginal variance is never smaller than 1/Q_ii, so floor it there.
     floor = (1.0 / S[:, 13].astype(np.float64)).astype(np.float32)
-    vinfo = dict(vinfo, n_floored=int(np.count_nonzero(var < floor)))
-    var = np.maximum(var, floor)
+    if variance:
+        var, vinfo = probe_variance(S, band["nbr"], n_probes=s.probes, seed=s.seed,
+                                    method=s.probe_method, tol=s.probe_tol, maxiter=s.maxiter,
+                                    ijk=band["ijk"], far=far)
+        # The probe estimate can dip below the conditional variance 1/Q_ii (or below 0) where
+        # few probes average out; the marginal variance is never smaller than 1/Q_ii, so floor
+        # it there.
+        vinfo = dict(vinfo, n_floored=int(np.count_nonzero(var < floor)))
+        var = np.maximum(var, floor)
+    else:
+        var, vinfo = floor, {"n_probes": 0, "method": "conditional (1/Q_ii, no probes)"}
     lap("variance")
     solver = {k: info[k] for k in ("converged", "iterations", "relative_residual")}
     if "reason" in info:
@@ -146,7 +185,23 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None) -> Poste
     return Posterior(ijk=band["ijk"], voxel_size=vs, mean=np.asarray(mean, np.float32),
                      var=np.asarray(var, np.float32), tsdf=band["tsdf"], weight=band["weight"],
                      core=band["core"], solver=solver, variance=_plain(vinfo),
-                     observations=_plain(obs_stats), seconds=seconds)
+                     observations=_plain(obs_stats), seconds=seconds,
+                     precision=(S, band["nbr"], far))
+
+
+def _carry_over(prev: Posterior, ijk: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """``x0`` with the voxels of ``ijk`` that ``prev`` also holds set to ``prev.mean``."""
+    from kernels.lookup import block_key_np
+
+    def key(a):  # one int64 per voxel, ascending in the bands' lexicographic order
+        return block_key_np(np.asarray(a, np.int64))
+
+    k_prev, k_new = key(prev.ijk), key(ijk)
+    pos = np.clip(np.searchsorted(k_prev, k_new), 0, len(k_prev) - 1)
+    same = k_prev[pos] == k_new
+    out = np.array(x0, np.float32, copy=True)
+    out[same] = prev.mean[pos[same]]
+    return out
 
 
 def _plain(d: dict) -> dict:

@@ -677,6 +677,14 @@ class Observer:
         return normals, fallback.astype(bool)
 
     # -- result ------------------------------------------------------------------------------
+    def diagonal(self) -> np.ndarray:
+        """(N,) float64 diagonal of the data term so far, ``(A^T W A)_ii`` (1/metre^2): what
+        next-best-view planning needs of a hypothetical frame, without assembling the
+        stencil (:meth:`finalize`). Exact (from the fixed-point sums)."""
+        if not self.n_voxels:
+            return np.zeros(0)
+        return self.S_acc.to_numpy()[:, 0] / self.fixed_scale
+
     def finalize(self) -> tuple[np.ndarray, np.ndarray, dict]:
         """The data term so far: ``S_data`` (N, 27) float32 (stencil of A^T W A, symmetric:
         ``S[i, o] == S[nbr[i, o], 26 - o]``, 0 towards voxels outside the band), ``h_data`` (N,)

@@ -65,8 +65,12 @@ def test_calibration_reports_coverage_and_rank_correlation(tmp_path):
 
 def test_reproduce_paper_prints_the_three_rows(tmp_path):
     out = _run([TOOLS / "reproduce_paper.py", "--set", "synthetic.n_views=4",
-                "--markdown", tmp_path / "t.md"])
+                "--markdown", tmp_path / "t.md", "--fig3", tmp_path / "fig3.png",
+                "--fig3-seeds", "1", "--fig3-probes", "4,8"])
     for row in ("TSDF bootstrap", "BayesFusion-SDF, no anchor", "BayesFusion-SDF + anchor",
                 "bftaichi default (+ curvature prior)"):
         assert f"| {row} |" in out
     assert (tmp_path / "t.md").read_text().startswith("| method |")
+    fig3 = [ln for ln in out.splitlines() if ln.startswith("| 4 |") or ln.startswith("| 8 |")]
+    assert len(fig3) == 2 and all(float(ln.split("|")[2].split()[0]) > 0 for ln in fig3)
+    assert (tmp_path / "fig3.png").stat().st_size > 1000

@@ -11,6 +11,11 @@ settings; bftaichi's defaults are used otherwise.
     python tools/reproduce_paper.py                       # table on stdout
     python tools/reproduce_paper.py --markdown paper.md   # also write it as Markdown
     python tools/reproduce_paper.py --set prior.lam=4     # any override, applied to every row
+    python tools/reproduce_paper.py --fig3 fig3.png       # also the paper's Fig. 3 trend
+
+Fig. 3 (``--fig3``): the mean top-view utility (``bftaichi.nbv``: the best of 48 hemisphere
+candidates at 1.5 m) of the unanchored and the anchored posterior (paper model) at K = 8, 16
+and 32 probes, the mean over ``--fig3-seeds`` probe seeds, plotted against K.
 """
 
 from __future__ import annotations
@@ -49,6 +54,58 @@ def run_rows(scene: Path, sets: list[str]) -> dict[str, dict]:
     return rows
 
 
+def fig3_rows(scene: Path, sets: list[str], probes=(8, 16, 32), seeds: int = 3) -> dict:
+    """{anchors: {K: (mean top utility, std over seeds)}} for anchors none / boundary."""
+    import numpy as np
+
+    import bftaichi as bf
+    from bftaichi.fusion import TSDFVolume
+    from bftaichi.nbv import plan
+    from bftaichi.pipeline import open_frames
+    from bftaichi.posterior import solve_posterior
+
+    out = {}
+    for anchors in ("none", "boundary"):
+        out[anchors] = {}
+        for k in probes:
+            tops = []
+            for seed in range(seeds):
+                cfg = bf.load_config(scene, [*PAPER_MODEL, f"prior.anchors={anchors}", *sets,
+                                             f"solver.probes={k}", f"solver.seed={seed}",
+                                             "nbv.n_candidates=48", "nbv.radius_m=1.5"])
+                bf.init(cfg.run.arch)
+                frames = open_frames(cfg)
+                vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m)
+                for f in frames:
+                    vol.integrate(f.depth_m, f.K, f.T_W_C)
+                post = solve_posterior(frames, vol.export(), cfg)
+                result = plan(post, cfg, frames, frames.K, frames.image_size)
+                tops.append(result["best"]["utility"])
+            out[anchors][k] = (float(np.mean(tops)), float(np.std(tops)))
+    return out
+
+
+def plot_fig3(rows: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5), dpi=120)
+    for anchors, label in (("none", "no anchor"), ("boundary", "anchored (boundary)")):
+        ks = sorted(rows[anchors])
+        mean = [rows[anchors][k][0] for k in ks]
+        std = [rows[anchors][k][1] for k in ks]
+        ax.errorbar(ks, mean, yerr=std, marker="o", capsize=3, label=label)
+    ax.set(xlabel="probes K", ylabel="mean top-view utility [m^2]", xticks=sorted(rows["none"]),
+           title="seed_sphere: top-view utility vs probes (paper Fig. 3)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def markdown(rows: dict[str, dict]) -> str:
     lines = ["| method | CD (bftaichi / paper) | Acc | Comp | F@20 | F@50 |",
              "|---|---|---|---|---|---|"]
@@ -69,6 +126,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default=str(ROOT / "scenes" / "seed_sphere.toml"))
     ap.add_argument("--set", dest="sets", action="append", default=[], help="override (repeatable)")
     ap.add_argument("--markdown", help="write the table as Markdown to this file")
+    ap.add_argument("--fig3", help="also reproduce the Fig. 3 trend and plot it to this PNG")
+    ap.add_argument("--fig3-seeds", type=int, default=3, help="probe seeds averaged per point")
+    ap.add_argument("--fig3-probes", default="8,16,32", help="probe counts K")
     args = ap.parse_args(argv)
     rows = run_rows(Path(args.scene), args.sets)
     table = markdown(rows)
@@ -81,6 +141,18 @@ def main(argv=None) -> int:
                   f"relative residual {s['relative_residual']:.1e}")
     if args.markdown:
         Path(args.markdown).write_text(table + "\n")
+    if args.fig3:
+        probes = [int(k) for k in args.fig3_probes.split(",")]
+        fig = fig3_rows(Path(args.scene), args.sets, probes, args.fig3_seeds)
+        print(f"\nFig. 3: mean top-view utility [m^2] over {args.fig3_seeds} probe seeds "
+              "(48 hemisphere candidates at 1.5 m)")
+        print("| K | no anchor | anchored |")
+        print("|---|---|---|")
+        for k in probes:
+            a, b = fig["none"][k], fig["boundary"][k]
+            print(f"| {k} | {a[0]:.4e} +- {a[1]:.1e} | {b[0]:.4e} +- {b[1]:.1e} |")
+        plot_fig3(fig, Path(args.fig3))
+        print(f"wrote {args.fig3}")
     return 0
 
 
