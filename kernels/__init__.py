@@ -11,6 +11,7 @@ Modules, one per concern (DESIGN.md section 3):
     observe  -- depth frames -> SDF samples -> data term accumulated in the 27-point stencil.
     prior    -- GMRF membrane prior and anchors added into the stencil.
     pcg      -- matrix-free stencil Q·x, Jacobi PCG, batched probe variance.
+    raycast  -- predicted depth of the posterior mean through the band; NBV coverage grid.
 """
 
 from .tsdf import SparseTSDF
