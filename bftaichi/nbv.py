@@ -24,10 +24,11 @@ For a candidate view ``v`` (pose ``T_W_C``, the run's intrinsics):
    at the prior variance: ``U_unknown = rho * g0 * n_unknown``, with ``n_unknown`` the distinct
    unseen cells the view's rays cross, ``rho = |Omega_eps| / n_seen`` the near-surface voxels
    per seen cell so far (the density of surface in the space seen), and ``g0 = s0 - s0 / (1 +
-   s0 w0)`` the reduction a voxel at the prior variance ``s0`` gets from one view: ``s0`` is
-   the median posterior variance of the band voxels no frame observed (the one-voxel dilation,
-   where only the prior speaks), ``w0`` the information of the pixels a voxel face collects at
-   the candidate's distance (noise model at that depth, head-on).
+   s0 w0)`` the reduction a voxel at the prior variance ``s0`` gets from one view: ``s0 =
+   (alpha tau)^2 / 3``, the variance of an SDF value known only to lie within the bootstrap
+   truncation (uniform on ``[-alpha tau, alpha tau]``; the band's unobserved dilation voxels
+   are no guide, the boundary anchors pin them), ``w0`` the information of the pixels a voxel
+   face collects at the candidate's distance (noise model at that depth, head-on).
 
 ``U(v) = U_known + U_unknown``, metres^2. Without step 4 a planner can never improve
 completeness: unseen surface has no voxels in the band to score.
@@ -214,9 +215,9 @@ class Planner:
         self.omega = (post.weight > 0) & (np.abs(post.mean) <= eps)
         s = np.asarray(post.var, np.float64)
         self.s_omega = s[self.omega]
-        unobserved = post.weight <= 0
-        # prior variance: what the band's unobserved voxels (only the prior speaks) carry
-        self.s0 = float(np.median(s[unobserved])) if unobserved.any() else float(s.max())
+        # prior variance of an unseen voxel: its SDF, clamped to the bootstrap truncation
+        # (alpha tau), could be anywhere in [-alpha tau, alpha tau]: uniform, variance (.)^2 / 3
+        self.s0 = cfg.tsdf.bootstrap_trunc_m ** 2 / 3.0
         seen = coverage.seen_count() if coverage is not None else 0
         self.rho = float(self.omega.sum()) / seen if seen else 0.0
 
