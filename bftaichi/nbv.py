@@ -18,17 +18,21 @@ For a candidate view ``v`` (pose ``T_W_C``, the run's intrinsics):
    reduction, by 1.3-1.7x on the small problem of tests/test_nbv.py, but by a similar factor
    for every candidate: checked against ``diag((Q + A_v^T W_v A_v)^-1)`` there (Spearman of
    the two rankings over 16 candidates >= 0.85).
-4. **Unknown space**: rays that cross cells no frame has seen yet (:class:`CoverageGrid`, a
-   coarse grid over the region of interest) before the predicted surface, or through the whole
-   region where no surface is predicted, may find new surface there. Each such cell is scored
-   at the prior variance: ``U_unknown = rho * g0 * n_unknown``, with ``n_unknown`` the distinct
-   unseen cells the view's rays cross, ``rho = |Omega_eps| / n_seen`` the near-surface voxels
-   per seen cell so far (the density of surface in the space seen), and ``g0 = s0 - s0 / (1 +
-   s0 w0)`` the reduction a voxel at the prior variance ``s0`` gets from one view: ``s0 =
+4. **Unknown space**: a ray that leaves the space some frame has seen (:class:`CoverageGrid`,
+   a coarse grid over the region of interest) before the predicted surface, or with no
+   surface predicted, enters unseen space at its *frontier cell*; what it would observe there
+   is new surface (or new free space). ``U_unknown = rho * g0 * n_frontier``: ``n_frontier``
+   the distinct frontier cells of the view's rays, each assumed to hold surface as densely as
+   the seen surface cells do, ``rho = |Omega_eps| / (cells holding an Omega_eps voxel)``, each
+   such voxel scored at the prior variance: ``g0 = s0 - s0 / (1 + s0 w0)`` the reduction a
+   voxel at the prior variance ``s0`` gets from one view: ``s0 =
    (alpha tau)^2 / 3``, the variance of an SDF value known only to lie within the bootstrap
    truncation (uniform on ``[-alpha tau, alpha tau]``; the band's unobserved dilation voxels
    are no guide, the boundary anchors pin them), ``w0`` the information of the pixels a voxel
-   face collects at the candidate's distance (noise model at that depth, head-on).
+   face collects at the candidate's distance (noise model at that depth, head-on). Counting
+   the frontier (an area) rather than every unseen cell a ray crosses (a volume: the
+   ``coverage`` policy of ``bftaichi scan``) keeps the inside of objects, which no view sees,
+   from counting as surface.
 
 ``U(v) = U_known + U_unknown``, metres^2. Without step 4 a planner can never improve
 completeness: unseen surface has no voxels in the band to score.
@@ -162,9 +166,19 @@ class CoverageGrid:
         self.grid.mark(depth_m, K, T_W_C, self.trunc_m, stride=stride,
                        miss_depth_m=self.miss_depth_m)
 
-    def count_unknown(self, depth_pred, K, T_W_C, stride: int, max_depth_m: float) -> int:
+    def count_unknown(self, depth_pred, K, T_W_C, stride: int, max_depth_m: float,
+                      frontier: bool = False) -> int:
+        """Distinct unseen cells the view's rays cross up to the predicted depth (or
+        ``max_depth_m``); with ``frontier``, only each ray's first unseen cell."""
         return int(self.grid.count_unknown(depth_pred, K, T_W_C, stride=stride,
-                                           max_depth_m=max_depth_m))
+                                           max_depth_m=max_depth_m, frontier=frontier))
+
+    def cells_of(self, points) -> np.ndarray:
+        """(n,) int64 flat cell index of world points (n, 3), clipped to the grid."""
+        shape = np.array(self.grid.shape)
+        c = np.clip(np.floor((np.asarray(points) - self.lo) / self.cell_m).astype(np.int64),
+                    0, shape - 1)
+        return np.ravel_multi_index(c.T, self.grid.shape)
 
     def seen_count(self) -> int:
         return int(self.grid.seen_count())
@@ -218,8 +232,10 @@ class Planner:
         # prior variance of an unseen voxel: its SDF, clamped to the bootstrap truncation
         # (alpha tau), could be anywhere in [-alpha tau, alpha tau]: uniform, variance (.)^2 / 3
         self.s0 = cfg.tsdf.bootstrap_trunc_m ** 2 / 3.0
-        seen = coverage.seen_count() if coverage is not None else 0
-        self.rho = float(self.omega.sum()) / seen if seen else 0.0
+        self.rho = 0.0  # Omega voxels per seen cell that holds any
+        if coverage is not None and self.omega.any():
+            centres = (post.ijk[self.omega] + 0.5) * vs
+            self.rho = float(self.omega.sum()) / len(np.unique(coverage.cells_of(centres)))
 
     def predict_depth(self, T_W_C) -> np.ndarray:
         """(H, W) float32 predicted depth of a view (0 where no surface is predicted)."""
@@ -250,7 +266,7 @@ class Planner:
 
     def utility(self, T_W_C) -> dict:
         """Score one view: ``utility`` (metres^2) = ``known`` + ``unknown``, and
-        ``unknown_cells``, ``hit_fraction`` (of the strided pixels that predict a surface)."""
+        ``frontier_cells``, ``hit_fraction`` (of the strided pixels that predict a surface)."""
         T_W_C = check_pose(T_W_C, "candidate pose")
         depth = self.predict_depth(T_W_C)
         d = self.information(depth, T_W_C)[self.omega]
@@ -259,11 +275,11 @@ class Planner:
         cells, unknown = 0, 0.0
         if self.coverage is not None:
             cells = self.coverage.count_unknown(depth, self.K, T_W_C, self.stride,
-                                                self.depth_range[1])
+                                                self.depth_range[1], frontier=True)
             unknown = self.rho * self._prior_gain(T_W_C) * cells
         n_px = len(range(0, self.height, self.stride)) * len(range(0, self.width, self.stride))
         return {"utility": known + unknown, "known": known, "unknown": unknown,
-                "unknown_cells": cells, "hit_fraction": float(np.count_nonzero(depth)) / n_px}
+                "frontier_cells": cells, "hit_fraction": float(np.count_nonzero(depth)) / n_px}
 
     def rank(self, poses, progress=None) -> list[dict]:
         """Score every pose (n, 4, 4); return dicts (``index``, ``rank`` 0 = best, ``pose``,
@@ -308,7 +324,7 @@ def nbv_summary(result: dict) -> dict:
     """What ``report.json`` keeps of a ranking: the best view and the planner's settings."""
     best = result["best"]
     return {"best": {k: best[k] for k in ("index", "pose", "utility", "known", "unknown",
-                                          "unknown_cells", "hit_fraction")},
+                                          "frontier_cells", "hit_fraction")},
             "n_candidates": len(result["candidates"]), "settings": result["settings"]}
 
 

@@ -225,12 +225,14 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
 
 @ti.func
 def _walk_cells(prm: ti.template(), u: ti.i32, v: ti.i32, z_end: ti.f64, seen: ti.template(),
-                stamp: ti.template(), call: ti.i32, counting: ti.template()) -> ti.i32:
+                stamp: ti.template(), call: ti.i32, counting: ti.template(),
+                first_only: ti.template()) -> ti.i32:
     """Visit every grid cell the ray of pixel (u, v) crosses between camera depths 0 and
     ``z_end``, clipped to the grid box, in order (Amanatides & Woo 3D DDA). ``counting`` False:
     store ``seen = 1`` in each (returns 0). ``counting`` True: stamp each unseen cell with
     ``call`` and return how many cells this thread stamped first (``atomic_max`` on the stamp:
-    of all threads reaching a cell in one call exactly one sees an older stamp)."""
+    of all threads reaching a cell in one call exactly one sees an older stamp); with
+    ``first_only`` the walk ends at the first unseen cell (the ray's *frontier* cell)."""
     n = ti.Vector([seen.shape[0], seen.shape[1], seen.shape[2]])
     o = _ray_origin(prm)
     m = _ray_grid(prm, u, v)
@@ -246,9 +248,12 @@ def _walk_cells(prm: ti.template(), u: ti.i32, v: ti.i32, z_end: ti.f64, seen: t
         c = ti.min(ti.max(c, 0), n - 1)  # entry cell (rounding at the box faces)
         for _ in range(n[0] + n[1] + n[2] + 1):  # a segment crosses at most nx+ny+nz+1 cells
             if ti.static(counting):
-                if seen[c[0], c[1], c[2]] == 0 and stamp[c[0], c[1], c[2]] != call:
-                    if ti.atomic_max(stamp[c[0], c[1], c[2]], call) < call:
-                        found += 1
+                if seen[c[0], c[1], c[2]] == 0:
+                    if stamp[c[0], c[1], c[2]] != call:
+                        if ti.atomic_max(stamp[c[0], c[1], c[2]], call) < call:
+                            found += 1
+                    if ti.static(first_only):
+                        break
             else:
                 seen[c[0], c[1], c[2]] = ti.u8(1)
             # t_next[a]: depth of the next face crossed along axis a
@@ -289,7 +294,7 @@ def _mark_frame(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
         d = ti.cast(depth[v, u], ti.f64)
         z_end = ti.select(d > 0, d + trunc_m, miss_depth_m)
         if z_end > 0:
-            _walk_cells(prm, u, v, z_end, seen, seen, 0, False)
+            _walk_cells(prm, u, v, z_end, seen, seen, 0, False, False)
 
 
 @ti.kernel
@@ -298,16 +303,18 @@ def _count_view(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                 stride: ti.i32, max_depth_m: ti.f64,
                 seen: ti.types.ndarray(dtype=ti.u8, ndim=3),
                 stamp: ti.types.ndarray(dtype=ti.i32, ndim=3), call: ti.i32,
-                total: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+                total: ti.types.ndarray(dtype=ti.i64, ndim=1), first_only: ti.template()):
     """``total[0] +=`` the number of distinct unseen cells crossed by the rays of the
-    ``stride``-th pixels up to camera depth ``depth[v, u]`` (if > 0, else ``max_depth_m``).
+    ``stride``-th pixels up to camera depth ``depth[v, u]`` (if > 0, else ``max_depth_m``);
+    with ``first_only``, of the rays' first unseen cells.
     Cells stamped ``call`` count once (``stamp`` must hold values < call before). One thread
     per pixel; integer atomics only, so deterministic."""
     H, W = depth.shape[0], depth.shape[1]
     for vs, us in ti.ndrange((H + stride - 1) // stride, (W + stride - 1) // stride):
         u, v = us * stride, vs * stride
         d = ti.cast(depth[v, u], ti.f64)
-        found = _walk_cells(prm, u, v, ti.select(d > 0, d, max_depth_m), seen, stamp, call, True)
+        found = _walk_cells(prm, u, v, ti.select(d > 0, d, max_depth_m), seen, stamp, call, True,
+                            first_only)
         if found > 0:
             ti.atomic_add(total[0], ti.cast(found, ti.i64))
 
@@ -534,8 +541,10 @@ class CoverageGrid:
         _mark_frame(prm, depth, stride, trunc_m, miss_depth_m, self.seen)
 
     def count_unknown(self, depth_pred: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
-                      stride: int = 1, max_depth_m: float = math.inf) -> int:
-        """Number of distinct unseen cells (``seen == 0``) a candidate view's rays would cross.
+                      stride: int = 1, max_depth_m: float = math.inf,
+                      frontier: bool = False) -> int:
+        """Number of distinct unseen cells (``seen == 0``) a candidate view's rays would cross
+        (``frontier``: only the first unseen cell of each ray, where it leaves seen space).
 
         Args:
             depth_pred: (H, W) predicted camera depth (z_C), metres (e.g. :func:`raycast_depth`
@@ -558,7 +567,7 @@ class CoverageGrid:
         self._call += 1
         total = np.zeros(1, np.int64)
         _count_view(prm, depth, stride, min(max_depth_m, _FAR), self.seen, self._stamp,
-                    self._call, total)
+                    self._call, total, bool(frontier))
         return int(total[0])
 
     def seen_count(self) -> int:

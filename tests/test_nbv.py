@@ -196,7 +196,7 @@ def test_a_view_of_unseen_surface_beats_re_observing_a_seen_side(half_sphere):
     opposite = look_at(-mean_dir / np.linalg.norm(mean_dir) * 0.8, [0, 0, 0])
     u_same, u_opp = planner.utility(same), planner.utility(opposite)
     assert u_same["known"] > 0 and u_same["hit_fraction"] > u_opp["hit_fraction"]
-    assert u_opp["unknown_cells"] > 5 * max(u_same["unknown_cells"], 1)
+    assert u_opp["frontier_cells"] > 5 * max(u_same["frontier_cells"], 1)
     assert u_opp["utility"] > u_same["utility"]
     assert planner.rho > 0 and planner.s0 > np.median(post.var[planner.omega])  # unseen: vaguer
 

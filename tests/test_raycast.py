@@ -408,6 +408,14 @@ def test_exact_traversal_and_dedup_on_a_tiny_grid():
     two = np.zeros((1, 2), np.float32)  # no predicted surface: to the box exit
     assert grid.count_unknown(two, K2, T2) == 4  # the 4 cells of column (2, 2)
     assert grid.count_unknown(two[:, :1], K2, T2) == 4
+    # frontier: only the first unseen cell of the column, once for both rays; after the first
+    # two cells are seen, the third
+    assert grid.count_unknown(two, K2, T2, frontier=True) == 1
+    grid.seen[2, 2, :2] = 1
+    assert grid.count_unknown(two, K2, T2) == 2
+    assert grid.count_unknown(two, K2, T2, frontier=True) == 1
+    grid.seen[2, 2, :] = 1
+    assert grid.count_unknown(two, K2, T2, frontier=True) == 0
 
 
 @pytest.mark.parametrize("dx, dy", [(0.31, 0.47), (-0.31, 0.47), (0.31, -0.47), (-0.31, -0.47)])
