@@ -187,7 +187,7 @@ def _print_ranking(result: dict, top: int = 5) -> None:
     click.echo(f"{len(result['candidates'])} candidates at {st['radius_m']:.3f} m around "
                f"({', '.join(f'{v:.3f}' for v in st['target'])}); seen cells {st['seen_cells']:,} "
                f"of {st['cell_m'] * 1000:.1f} mm")
-    click.echo("rank  index  utility [m^2]  known      unknown    frontier cells hits  camera at")
+    click.echo("rank  index  utility [m^2]  known      unknown    frontier cells  hits  camera at")
     for c in result["candidates"][:top]:
         eye = np.asarray(c["pose"])[:3, 3]
         click.echo(f"{c['rank']:4d}  {c['index']:5d}  {c['utility']:.3e}      {c['known']:.3e}  "
