@@ -328,6 +328,43 @@ def scan(scene, out, policies, steps, n_candidates, sets, arch, overwrite, quiet
         click.echo(f"outputs in {out}/ (scan.json, scan.png)")
 
 
+@cli.command()
+@click.argument("out_dir", type=click.Path(file_okay=False))
+@click.option("--html", "html_file", type=click.Path(dir_okay=False), default=None,
+              help="Write a self-contained static page to this file instead of serving.")
+@click.option("--band", is_flag=True, help="Also show the band voxels near the surface as "
+              "points coloured by sigma.")
+@click.option("--max-faces", type=int, default=200_000, show_default=True,
+              help="Decimate meshes above this many faces before sending them.")
+@click.option("--timeout", type=float, default=None,
+              help="Stop serving after this many seconds [default: until Ctrl-C].")
+def view(out_dir, html_file, band, max_faces, timeout):
+    """Show the outputs of a run (OUT_DIR) in the browser with meshcat.
+
+    The mesh is coloured by its posterior sigma (legend in the page); the TSDF baseline mesh,
+    the input cameras and the NBV candidates (if nbv.json exists) are layers you can toggle
+    under Open Controls > Scene. Without --html this serves the live viewer and prints its URL
+    (open it in a browser; Ctrl-C stops the server). Every `bftaichi run` also writes
+    OUT_DIR/preview.html, the same page as --html.
+
+    \b
+    Examples:
+      bftaichi view out/bunny                      # live viewer, prints the URL
+      bftaichi view out/bunny --html bunny.html    # one self-contained file
+    """
+    from .errors import BftaichiError as _Error
+    from .viz import serve, write_preview
+
+    if max_faces < 1000:
+        raise _Error(f"--max-faces {max_faces}: must be at least 1000")
+    if html_file:
+        path = write_preview(out_dir, html_file, max_faces=max_faces, band=band)
+        click.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
+        return
+    serve(out_dir, timeout_s=timeout, max_faces=max_faces, band=band,
+          on_url=lambda url: click.echo(f"meshcat viewer of {out_dir}: {url}  (Ctrl-C to stop)"))
+
+
 @cli.command(name="eval")
 @click.argument("pred", type=click.Path(dir_okay=False))
 @click.argument("gt", type=click.Path(dir_okay=False))

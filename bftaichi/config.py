@@ -561,6 +561,10 @@ class RunConfig:
     """``full`` (TSDF bootstrap + probabilistic posterior: tsdf_mesh.ply and mesh.ply with sigma)
     or ``tsdf_only`` (the bootstrap alone, e.g. as a fast baseline)."""
 
+    preview: bool = True
+    """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.viz``)
+    at the end of a run."""
+
     def check(self) -> None:
         _check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
         _check_choice("run.stages", self.stages, ("full", "tsdf_only"))

@@ -171,9 +171,14 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
                      max_weight=cfg.tsdf.max_weight, integrate_rgb=cfg.tsdf.integrate_rgb,
                      depth_max_m=cfg.scene.depth_max_m, arch=cfg.run.arch)
     reader = _FrameReader(progress)
+    cameras = {"K": None, "image_size": None, "poses": []}  # for the preview
     with timer("tsdf"):
         for frame in reader(frames, "integrate"):
             vol.integrate(frame.depth_m, frame.K, frame.T_W_C, rgb=frame.rgb, name=frame.name)
+            if cameras["K"] is None:
+                cameras["K"] = np.asarray(frame.K).tolist()
+                cameras["image_size"] = [frame.depth_m.shape[1], frame.depth_m.shape[0]]
+            cameras["poses"].append(np.asarray(frame.T_W_C).tolist())
     timer.seconds["tsdf"] = round(timer.seconds["tsdf"] - reader.wait_s, 4)
     stats = vol.stats()
     with timer("export"):
@@ -254,6 +259,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
                  "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
         "metrics": metrics,
         "uncertainty": uncertainty,
+        "cameras": cameras,
         "has_ground_truth": gt is not None,
         "machine": {"python": platform.python_version(), "arch": cfg.run.arch,
                     "cpus": os.cpu_count()},
@@ -267,4 +273,13 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         report["seconds"]["nbv"] = timer.seconds["nbv"]
         report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
     write_json(out / "report.json", report)
+    if cfg.run.preview:
+        from .viz import write_preview
+
+        with timer("preview"):
+            write_preview(out)
+        report["seconds"]["preview"] = timer.seconds["preview"]
+        report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
+        write_json(out / "report.json", report)
     return report
+

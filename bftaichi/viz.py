@@ -1,0 +1,381 @@
+"""See a run: a meshcat scene of its outputs, as a self-contained HTML page or a live viewer.
+
+The scene (:func:`build_scene`, from the files of an output folder, DESIGN.md section 4):
+
+- ``bftaichi/mesh``: ``mesh.ply`` coloured by its vertex ``sigma`` (colour map ``viridis``
+  between the 2nd and 98th percentile, written into the page as a legend in millimetres);
+- ``bftaichi/tsdf_mesh``: the TSDF baseline ``tsdf_mesh.ply`` in grey, hidden at first (tick it
+  in the viewer's *Open Controls* > *Scene* tree to show it);
+- ``bftaichi/cameras``: a frustum per input frame (from ``report.json``'s ``frames`` poses);
+- ``bftaichi/nbv``: with ``nbv.json``, the candidate frustums coloured by utility (dark =
+  low, yellow = high) and the best view in red, drawn larger;
+- ``bftaichi/band`` (``band=True``): band voxels near the surface as points coloured by sigma.
+
+Meshes above ``max_faces`` are decimated (quadric decimation, ``fast-simplification``) before
+they are sent, and the sigma of a decimated vertex is that of the nearest original vertex.
+
+meshcat-python 0.3.2 notes, all handled here: its ``Visualizer()`` starts a server subprocess
+(ports 6000/7000 and up) and ``static_html()`` asks that server for the page. The static page
+needs no server here: :class:`_Recorder` is a meshcat window that keeps the encoded commands
+and builds the page itself (meshcat's own ``create_command`` and viewer bundle), so writing
+``preview.html`` never starts a process. Only :func:`serve` (``bftaichi view``) starts the
+server, and it kills it (and waits for it) however the command ends: return, error, Ctrl-C,
+SIGTERM or SIGHUP; if the command is killed outright, the server gets SIGKILL from the kernel
+(``PR_SET_PDEATHSIG``). Arrays go to meshcat as
+3xN float32, faces as uint32.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError
+
+__all__ = ["build_scene", "preview_html", "write_preview", "serve"]
+
+MAX_FACES = 200_000
+
+
+class _Recorder:
+    """A meshcat window that records commands (``umsgpack`` bytes, as the server stores them)
+    instead of sending them, and renders them into a static page."""
+
+    def __init__(self):
+        self.commands: list[bytes] = []
+
+    def send(self, command) -> None:
+        import umsgpack
+
+        self.commands.append(umsgpack.packb(command.lower()))
+
+
+def _colormap(values, lo: float, hi: float, name: str = "viridis") -> np.ndarray:
+    """(n, 3) float32 RGB in [0, 1] of ``values`` mapped from [lo, hi]."""
+    from matplotlib import colormaps
+
+    t = np.clip((np.asarray(values, np.float64) - lo) / max(hi - lo, 1e-30), 0.0, 1.0)
+    return colormaps[name](t)[:, :3].astype(np.float32)
+
+
+def _decimate(vertices, faces, attr, max_faces: int):
+    """Quadric decimation to at most ``max_faces``; ``attr`` (per vertex) follows the nearest
+    original vertex."""
+    if len(faces) <= max_faces:
+        return vertices, faces, attr
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    small = trimesh.Trimesh(vertices, faces, process=False).simplify_quadric_decimation(
+        face_count=max_faces)
+    v = np.asarray(small.vertices)
+    if attr is not None:
+        attr = np.asarray(attr)[cKDTree(vertices).query(v, k=1)[1]]
+    return v, np.asarray(small.faces), attr
+
+
+def _translation(t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = t
+    return T
+
+
+def _frustums(poses, K, size, depth_m: float, colors) -> tuple[np.ndarray, np.ndarray]:
+    """Line segments (3, 16 n) and colours (3, 16 n) of camera frustums: the 4 corner rays to
+    ``depth_m`` and the far rectangle, per pose (world frame)."""
+    w, h = size
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], np.float64)
+    rays = np.linalg.solve(K, corners.T).T * depth_m  # camera frame, z = depth_m
+    segs = []
+    for T in poses:
+        c = T[:3, 3]
+        far = (T[:3, :3] @ rays.T).T + c
+        for k in range(4):
+            segs += [c, far[k], far[k], far[(k + 1) % 4]]
+    pts = np.asarray(segs, np.float32).T
+    col = np.repeat(np.asarray(colors, np.float32), 16, axis=0).T
+    return pts, col
+
+
+def _load_outputs(out: Path) -> dict:
+    from .io import read_mesh_ply
+
+    out = Path(out)
+    if not out.is_dir():
+        raise DataError(f"{out} is not a folder of run outputs")
+    data = {"report": None, "nbv": None}
+    for name in ("report", "nbv"):
+        p = out / f"{name}.json"
+        if p.exists():
+            try:
+                data[name] = json.loads(p.read_text())
+            except ValueError:
+                raise DataError(f"{p} is not valid JSON") from None
+    for name in ("mesh.ply", "tsdf_mesh.ply"):
+        p = out / name
+        data[name] = read_mesh_ply(p) if p.exists() else None
+    if data["mesh.ply"] is None and data["tsdf_mesh.ply"] is None:
+        raise DataError(f"{out} holds neither mesh.ply nor tsdf_mesh.ply: nothing to show")
+    p = out / "band.npz"
+    data["band"] = dict(np.load(p)) if p.exists() else None
+    return data
+
+
+def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False) -> dict:
+    """Send the scene of a run's outputs in ``out_dir`` to the meshcat visualizer ``vis``;
+    return the legend (``sigma_mm``: colour range, or None) and what was drawn."""
+    import meshcat.geometry as g
+
+    d = _load_outputs(Path(out_dir))
+    root = vis["bftaichi"]
+    info = {"sigma_mm": None, "drawn": []}
+    scale, centre = 1.0, None
+    if d["mesh.ply"] is not None:
+        v, f, attrs = d["mesh.ply"]
+        sigma = attrs.get("sigma")
+        v, f, sigma = _decimate(v, f, sigma, max_faces)
+        color = None
+        if sigma is not None and len(sigma):
+            lo, hi = (float(x) for x in np.percentile(sigma, [2, 98]))
+            color = _colormap(sigma, lo, hi)
+            info["sigma_mm"] = (1000 * lo, 1000 * hi)
+        root["mesh"].set_object(g.TriangularMeshGeometry(v, f, color=color),
+                                g.MeshLambertMaterial(color=0xffffff, vertexColors=color is not None))
+        info["drawn"].append(f"mesh.ply ({len(f):,} faces)")
+        if len(v):
+            scale, centre = float(np.ptp(v, axis=0).max()), 0.5 * (v.min(axis=0) + v.max(axis=0))
+    if d["tsdf_mesh.ply"] is not None:
+        v, f, _ = d["tsdf_mesh.ply"]
+        v, f, _ = _decimate(v, f, None, max_faces)
+        root["tsdf_mesh"].set_object(g.TriangularMeshGeometry(v, f),
+                                     g.MeshLambertMaterial(color=0xb0b0b0))
+        if d["mesh.ply"] is not None:
+            root["tsdf_mesh"].set_property("visible", False)
+        elif len(v):
+            scale, centre = float(np.ptp(v, axis=0).max()), 0.5 * (v.min(axis=0) + v.max(axis=0))
+        info["drawn"].append(f"tsdf_mesh.ply ({len(f):,} faces)")
+    report = d["report"] or {}
+    cams = report.get("cameras")
+    if cams and cams.get("poses"):
+        poses = np.asarray(cams["poses"], np.float64)
+        pts, col = _frustums(poses, np.asarray(cams["K"]), cams["image_size"], 0.15 * scale,
+                             [(0.2, 0.4, 1.0)] * len(poses))
+        root["cameras"].set_object(g.LineSegments(g.PointsGeometry(pts, col),
+                                                  g.LineBasicMaterial(vertexColors=True)))
+        info["drawn"].append(f"{len(poses)} camera frustums")
+    if d["nbv"] is not None and cams:
+        cand = d["nbv"]["candidates"]
+        poses = np.asarray([c["pose"] for c in cand], np.float64)
+        u = np.array([c["utility"] for c in cand])
+        col = _colormap(u, float(u.min()), float(u.max()), "plasma")
+        best = int(np.argmin([c["rank"] for c in cand]))
+        col[best] = (1.0, 0.0, 0.0)
+        pts, cols = _frustums(poses, np.asarray(cams["K"]), cams["image_size"], 0.1 * scale, col)
+        root["nbv"]["candidates"].set_object(
+            g.LineSegments(g.PointsGeometry(pts, cols), g.LineBasicMaterial(vertexColors=True)))
+        pts, cols = _frustums(poses[best:best + 1], np.asarray(cams["K"]), cams["image_size"],
+                              0.25 * scale, [(1.0, 0.0, 0.0)])
+        root["nbv"]["best"].set_object(
+            g.LineSegments(g.PointsGeometry(pts, cols), g.LineBasicMaterial(vertexColors=True)))
+        info["drawn"].append(f"{len(cand)} NBV candidates (best: {cand[best]['index']})")
+    if centre is not None:
+        # frame the result: the orbit target at its centre, the camera 2 extents away, from
+        # above and to the side (meshcat's camera sits in a y-up frame: world z is its y)
+        vis["/Cameras/default"].set_transform(_translation(centre))
+        dist = 2.0 * scale
+        vis["/Cameras/default/rotated/<object>"].set_property(
+            "position", [0.7 * dist, 0.6 * dist, 0.9 * dist])
+        vis["/Axes"].set_property("visible", False)
+    if band and d["band"] is not None and "var" in d["band"]:
+        b = d["band"]
+        vs = float(b["voxel_size"])
+        near = (np.abs(b["mean"]) <= vs) & (b["weight"] > 0)
+        pts = ((b["ijk"][near] + 0.5) * vs).astype(np.float32).T
+        sig = np.sqrt(np.maximum(b["var"][near], 0))
+        lo, hi = (float(x) for x in np.percentile(sig, [2, 98])) if len(sig) else (0.0, 1.0)
+        root["band"].set_object(g.PointCloud(pts, _colormap(sig, lo, hi).T, size=vs))
+        info["drawn"].append(f"{pts.shape[1]:,} band voxels")
+    return info
+
+
+_PAGE = """<!DOCTYPE html>
+<html>
+<head><meta charset="utf-8"><title>bftaichi: {title}</title>
+<style>
+body {{ margin: 0; }}
+#meshcat-pane {{ width: 100vw; height: 100vh; overflow: hidden; }}
+#legend {{ position: absolute; left: 12px; bottom: 12px; padding: 8px 10px;
+  background: rgba(255, 255, 255, 0.85); font: 13px sans-serif; border-radius: 4px; }}
+#legend .bar {{ width: 220px; height: 12px; margin: 4px 0;
+  background: linear-gradient(to right, {gradient}); }}
+#legend .ends {{ display: flex; justify-content: space-between; }}
+</style></head>
+<body>
+<div id="meshcat-pane"></div>
+{legend}
+<script>
+{viewer_js}
+</script>
+<script>
+var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
+{commands}
+</script>
+</body>
+</html>
+"""
+
+
+def preview_html(out_dir, *, max_faces: int = MAX_FACES, band: bool = False) -> str:
+    """The self-contained page (meshcat's viewer bundle and the scene inline) of a run's
+    outputs in ``out_dir``. Starts no process."""
+    import meshcat
+
+    rec = _Recorder()
+    info = build_scene(meshcat.Visualizer(window=rec), out_dir, max_faces=max_faces, band=band)
+    return _page(rec.commands, info["sigma_mm"], Path(out_dir).name)
+
+
+def _page(commands: list, sigma_mm, title: str) -> str:
+    """The static page of recorded meshcat ``commands`` with the sigma legend (mm range or
+    None)."""
+    import os
+
+    from meshcat.servers.zmqserver import VIEWER_ROOT, create_command
+
+    legend = ""
+    if sigma_mm is not None:
+        lo, hi = sigma_mm
+        legend = (f'<div id="legend">posterior sigma (mm)<div class="bar"></div>'
+                  f'<div class="ends"><span>{lo:.3g}</span><span>{hi:.3g}</span></div>'
+                  f'<div>layers (TSDF mesh: hidden, cameras, NBV views): Open Controls &gt; '
+                  f'Scene</div></div>')
+    stops = _colormap(np.linspace(0, 1, 9), 0, 1)
+    gradient = ", ".join(f"rgb({int(255 * r)}, {int(255 * gg)}, {int(255 * b)})"
+                         for r, gg, b in stops)
+    with open(os.path.join(VIEWER_ROOT, "main.min.js"), encoding="utf-8") as f:
+        viewer_js = f.read()
+    return _PAGE.format(title=html.escape(title), gradient=gradient, legend=legend,
+                        viewer_js=viewer_js, commands="".join(create_command(c) for c in commands))
+
+
+def write_preview(out_dir, path=None, **kwargs) -> Path:
+    """Write :func:`preview_html` of ``out_dir`` to ``path`` (default ``out_dir/preview.html``),
+    atomically; return the path."""
+    from .io import atomic_write_bytes
+
+    path = Path(path) if path else Path(out_dir) / "preview.html"
+    atomic_write_bytes(path, preview_html(out_dir, **kwargs).encode("utf-8"))
+    return path
+
+
+class _ZmqWindow:
+    """A meshcat window talking to a running server (meshcat's ``ViewerWindow.send``, without
+    its printing)."""
+
+    def __init__(self, zmq_url: str):
+        import zmq
+
+        self.context = zmq.Context.instance()
+        self.socket = self.context.socket(zmq.REQ)
+        self.socket.connect(zmq_url)
+
+    def send(self, command) -> None:
+        import umsgpack
+
+        data = command.lower()
+        self.socket.send_multipart([data["type"].encode("utf-8"), data["path"].encode("utf-8"),
+                                    umsgpack.packb(data)])
+        self.socket.recv()
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+
+def _die_with_parent() -> None:
+    """In the server child, before exec: ask Linux to kill it when its parent dies, even by
+    SIGKILL (prctl PR_SET_PDEATHSIG); elsewhere a no-op."""
+    import ctypes
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+
+
+def _start_server():
+    """meshcat's server as a child process (meshcat's own command line, as its
+    ``start_zmq_server_as_subprocess`` runs it, plus :func:`_die_with_parent`); returns
+    ``(proc, zmq_url, web_url)``."""
+    import os
+    import subprocess
+    import sys
+
+    import meshcat
+    from meshcat.servers.zmqserver import match_web_url, match_zmq_url
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [os.path.dirname(os.path.dirname(meshcat.__file__))] + sys.path)
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "meshcat.servers.zmqserver"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+                            start_new_session=True, preexec_fn=_die_with_parent)
+    line = ""
+    while "zmq_url" not in line:
+        line = proc.stdout.readline().decode("utf-8", "replace").strip()
+        if proc.poll() is not None:
+            err = proc.stderr.read().decode("utf-8", "replace")
+            raise DataError(f"the meshcat server did not start (exit code {proc.returncode}): "
+                            f"{err[-500:]}")
+    zmq_url = match_zmq_url(line)
+    web_url = match_web_url(proc.stdout.readline().decode("utf-8", "replace").strip())
+    return proc, zmq_url, web_url
+
+
+def serve(out_dir, *, timeout_s: float | None = None, max_faces: int = MAX_FACES,
+          band: bool = False, on_url=print) -> None:
+    """Serve the live meshcat viewer of ``out_dir``: start meshcat's server, send the scene,
+    report its URL through ``on_url``, and wait until Ctrl-C, SIGTERM, SIGHUP or ``timeout_s``
+    seconds. The server process is killed and reaped however this ends, and Linux kills it
+    if this process itself is killed."""
+    import signal
+    import threading
+
+    import meshcat
+
+    _load_outputs(Path(out_dir))  # bad folder: an error before any process starts
+
+    def stop(signum, frame):  # SIGTERM / SIGHUP end the wait like Ctrl-C, through `finally`
+        raise KeyboardInterrupt
+
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        handlers = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    proc, zmq_url, web_url = _start_server()
+    window = None
+    try:
+        window = _ZmqWindow(zmq_url)
+        build_scene(meshcat.Visualizer(window=window), out_dir, max_faces=max_faces, band=band)
+        on_url(web_url)
+        t0 = time.monotonic()
+        while timeout_s is None or time.monotonic() - t0 < timeout_s:
+            time.sleep(0.1)
+            if proc.poll() is not None:
+                raise DataError(f"the meshcat server stopped (exit code {proc.returncode})")
+    finally:
+        if window is not None:
+            window.close()
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+        for stream in (proc.stdout, proc.stderr):
+            if stream:
+                stream.close()
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
