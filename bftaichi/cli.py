@@ -41,15 +41,23 @@ def cli():
     """
 
 
-def _print_summary(report: dict, out: Path) -> None:
+#: Metrics of the default (compact) summary; --verbose shows every metric.
+_SUMMARY_KEYS = ("chamfer_l2", "accuracy_m", "completeness_m")
+
+
+def _print_summary(out: Path, verbose: bool = False) -> None:
+    """One screen about a run, built from ``out/report.json``."""
     from .metrics import format_table
 
+    report = json.loads((out / "report.json").read_text())
     c, s = report["counts"], report["seconds"]
     click.echo(f"scene {report['scene']}: {c['frames']} frames, {c['pixels_used']:,} depth pixels, "
                f"{c['observed_voxels']:,} observed voxels in {c['blocks']:,} blocks")
     fps = c["frames"] / s["tsdf"] if s.get("tsdf") else float("nan")
     click.echo(f"time: total {s['total']:.2f} s (TSDF {s['tsdf']:.2f} s = {fps:.0f} frames/s, "
                f"mesh {s['mesh']:.2f} s, reading frames {s['read_frames']:.2f} s)")
+    if verbose:
+        click.echo("seconds per stage: " + ", ".join(f"{k} {v:.2f}" for k, v in s.items()))
     click.echo(f"tsdf_mesh.ply: {c['tsdf_mesh_vertices']:,} vertices, {c['tsdf_mesh_faces']:,} faces")
     if report.get("solver"):
         m, v = report["solver"]["map"], report["solver"]["variance"]
@@ -58,6 +66,12 @@ def _print_summary(report: dict, out: Path) -> None:
                    f"band {c['band_voxels']:,} voxels; MAP PCG {state} in {m['iterations']} "
                    f"iterations (relative residual {m['relative_residual']:.1e}); "
                    f"variance from {v['n_probes']} probes ({s['posterior']:.2f} s)")
+        if verbose:
+            sub = report["solver"]["seconds"]
+            click.echo("posterior seconds: " + ", ".join(f"{k} {x:.2f}" for k, x in sub.items()))
+            obs = report["solver"]["observations"]
+            click.echo("observations: " + ", ".join(f"{k} {x:,}" for k, x in obs.items()
+                                                    if isinstance(x, int)))
         if not m["converged"]:
             click.echo("warning: the MAP solve did not converge; mesh.ply is written but flagged "
                        "in report.json (raise solver.maxiter or check the scene)", err=True)
@@ -67,7 +81,11 @@ def _print_summary(report: dict, out: Path) -> None:
                    "depth scale", err=True)
     if report["metrics"]:
         click.echo("metrics vs ground truth:")
-        click.echo(format_table(report["metrics"]))
+        keys = None
+        if not verbose:
+            keys = [k for k in next(iter(report["metrics"].values()))
+                    if k in _SUMMARY_KEYS or k.startswith("fscore@")]
+        click.echo(format_table(report["metrics"], keys))
         u = report.get("uncertainty")
         if u:
             click.echo(f"sigma vs true error ({u['n']:,} observed voxels within "
@@ -77,6 +95,14 @@ def _print_summary(report: dict, out: Path) -> None:
                        f"Spearman {u['spearman']:.2f}")
     else:
         click.echo("no ground-truth mesh: geometry metrics skipped")
+    if report.get("nbv"):
+        b = report["nbv"]["best"]
+        eye = ", ".join(f"{x:.3f}" for x in (row[3] for row in b["pose"][:3]))
+        click.echo(f"next-best view: candidate {b['index']} of {report['nbv']['n_candidates']} "
+                   f"at ({eye}), utility {b['utility']:.3e} m^2 (nbv.json)")
+    if (out / "preview.html").exists():
+        mb = (out / "preview.html").stat().st_size / 1e6
+        click.echo(f"preview.html ({mb:.1f} MB): open it in a browser, or `bftaichi view {out}`")
     click.echo(f"outputs in {out}/")
 
 
@@ -89,7 +115,8 @@ def _print_summary(report: dict, out: Path) -> None:
 @click.option("--arch", type=ARCH, default=None, help="Taichi backend [default: cpu].")
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
-def run(scene, out, sets, arch, overwrite, quiet):
+@click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
+def run(scene, out, sets, arch, overwrite, quiet, verbose):
     """Run a scene file end to end (the built-in tabletop scene if SCENE is omitted).
 
     Writes tsdf_mesh.ply, band.npz, report.json and config.toml into the output folder and
@@ -106,9 +133,9 @@ def run(scene, out, sets, arch, overwrite, quiet):
 
     cfg = load_config(scene, _overrides(arch, sets))
     out = Path(out or Path("out") / cfg.scene.name)
-    report = run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
+    run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
     if not quiet:
-        _print_summary(report, out)
+        _print_summary(out, verbose)
 
 
 @cli.command()
@@ -127,7 +154,9 @@ def run(scene, out, sets, arch, overwrite, quiet):
 @click.option("--arch", type=ARCH, default=None, help="Taichi backend [default: cpu].")
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
-def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, out, sets, arch, overwrite, quiet):
+@click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
+def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, out, sets, arch, overwrite, quiet,
+         verbose):
     """Fuse recorded depth frames from DATA_DIR into a TSDF mesh.
 
     \b
@@ -147,9 +176,9 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, out, sets, arc
     if depth_max is not None:
         base.append(f"scene.depth_max_m={depth_max}")
     cfg = load_config(None, base + _overrides(arch, sets))
-    report = run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
+    run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
-        _print_summary(report, Path(out))
+        _print_summary(Path(out), verbose)
 
 
 @cli.command()
@@ -212,7 +241,9 @@ def _print_ranking(result: dict, top: int = 5) -> None:
               help="Other overrides, e.g. --set nbv.stride=4.")
 @click.option("--top", type=int, default=5, show_default=True, help="Rows to print.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
-def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet):
+@click.option("--verbose", "-v", is_flag=True, help="Print every candidate and the planner's "
+              "settings.")
+def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verbose):
     """Rank next-best views for the outputs of a run (OUT_DIR of `bftaichi run` or `fuse`).
 
     Reads OUT_DIR/config.toml and band.npz, re-reads the run's frames to mark the space they
@@ -253,7 +284,12 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet):
     post = Posterior.load(out / "band.npz")
     frames = open_frames(cfg)
     backend.init(cfg.run.arch)
-    result = rank_run(post, cfg, frames, out)
+    from tqdm import tqdm
+
+    def bar(it):
+        return tqdm(it, desc="nbv", unit="view", leave=False, disable=None if not quiet else True)
+
+    result = rank_run(post, cfg, frames, out, progress=bar)
     report_path = out / "report.json"
     if report_path.exists():
         try:
@@ -263,7 +299,9 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet):
         report["nbv"] = nbv_summary(result)
         write_json(report_path, report)
     if not quiet:
-        _print_ranking(result, top)
+        _print_ranking(result, len(result["candidates"]) if verbose else top)
+        if verbose:
+            click.echo("planner: " + json.dumps(result["settings"]))
         click.echo(f"wrote {out / 'nbv.json'}")
 
 
@@ -282,7 +320,8 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet):
 @click.option("--arch", type=ARCH, default=None, help="Taichi backend [default: cpu].")
 @click.option("--overwrite", is_flag=True, help="Replace an earlier scan in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress or summary.")
-def scan(scene, out, policies, steps, n_candidates, sets, arch, overwrite, quiet):
+@click.option("--verbose", "-v", is_flag=True, help="A line per step of every policy.")
+def scan(scene, out, policies, steps, n_candidates, sets, arch, overwrite, quiet, verbose):
     """Closed-loop active scanning of a synthetic SCENE (default: the built-in tabletop).
 
     Every policy starts from the same 2 views and adds one view at a time from the same
@@ -306,26 +345,45 @@ def scan(scene, out, policies, steps, n_candidates, sets, arch, overwrite, quiet
         extra.append(f"nbv.n_candidates={n_candidates}")
     cfg = load_config(scene, extra)
     chosen = tuple(p.strip() for p in policies.split(",") if p.strip())
+    from tqdm import tqdm
+
+    runs = sum(cfg.nbv.random_seeds if p == "random" else 1 for p in chosen)
+    bar = tqdm(total=runs * cfg.nbv.steps, desc="scan", unit="view", leave=False,
+               disable=None if not quiet else True)
 
     def show(policy, seed, rec):
-        click.echo(f"  {policy}{'' if policy != 'random' else f' (seed {seed})'}: "
-                   f"{rec['views']} views, F@10mm {rec['fscore@10mm']:.3f}, completeness "
-                   f"{rec['completeness_mm']:.2f} mm", err=True)
+        bar.set_postfix_str(policy)
+        bar.update(1)
+        if verbose:
+            bar.write(f"  {policy}{'' if policy != 'random' else f' (seed {seed})'}: "
+                      f"{rec['views']} views, F@10mm {rec['fscore@10mm']:.3f}, completeness "
+                      f"{rec['completeness_mm']:.2f} mm", file=sys.stderr)
 
     out = Path(out or Path("out") / f"scan-{cfg.scene.name}")
-    report = run_scan(cfg, out, chosen, overwrite=overwrite, progress=None if quiet else show)
+    try:
+        run_scan(cfg, out, chosen, overwrite=overwrite, progress=show)
+    finally:
+        bar.close()
     if not quiet:
-        click.echo(f"scan of {report['scene']}: {report['candidates']} candidates, "
-                   f"initial views {report['initial_views']}, {report['steps']} steps "
-                   f"({report['seconds']:.0f} s)")
-        click.echo("policy     AUC F@10mm  views to F@10mm>=0.9  final F@10mm  final comp. (mm)")
-        for policy, res in report["policies"].items():
-            s = res["summary"]
-            reach = s["views_to_f10_0.9"]
-            click.echo(f"{policy:10s} {s['auc_f10']:.4f}      {reach if reach else 'never':>8}"
-                       f"              {s['final_f10']:.3f}         "
-                       f"{s['final_completeness_mm']:.2f}")
-        click.echo(f"outputs in {out}/ (scan.json, scan.png)")
+        _print_scan_summary(out)
+
+
+def _print_scan_summary(out: Path) -> None:
+    """One screen about a scan, built from ``out/scan.json``."""
+    report = json.loads((out / "scan.json").read_text())
+    click.echo(f"scan of {report['scene']}: {report['candidates']} candidates, "
+               f"initial views {report['initial_views']}, {report['steps']} steps "
+               f"({report['seconds']:.0f} s)")
+    click.echo("policy               AUC F@10mm  views to F@10mm>=0.9  final F@10mm  "
+               "final comp. (mm)")
+    for policy, res in report["policies"].items():
+        s = res["summary"]
+        reach = s["views_to_f10_0.9"]
+        name = policy if len(res["runs"]) == 1 else f"{policy} (mean of {len(res['runs'])})"
+        click.echo(f"{name:20s} {s['auc_f10']:.4f}      {reach if reach else 'never':>8}"
+                   f"              {s['final_f10']:.3f}         "
+                   f"{s['final_completeness_mm']:.2f}")
+    click.echo(f"outputs in {out}/ (scan.json, scan.png)")
 
 
 @cli.command()

@@ -24,8 +24,8 @@ import numpy as np
 
 from .errors import BftaichiError, DataError
 
-__all__ = ["geometry_metrics", "surface_sdf", "uncertainty_metrics", "load_mesh", "format_table",
-           "DEFAULT_THRESHOLDS_MM"]
+__all__ = ["geometry_metrics", "surface_distances", "surface_sdf", "uncertainty_metrics",
+           "load_mesh", "format_table", "DEFAULT_THRESHOLDS_MM"]
 
 #: Default F-score thresholds (mm), as in the BayesFusion-SDF paper.
 DEFAULT_THRESHOLDS_MM = (5, 10, 20, 50)
@@ -98,9 +98,6 @@ def geometry_metrics(pred, gt, thresholds_mm=DEFAULT_THRESHOLDS_MM, n_samples: i
     Raises:
         BftaichiError (a ValueError) if ``gt`` has no surface, or an argument is invalid.
     """
-    from scipy.spatial import cKDTree
-    from trimesh.sample import sample_surface
-
     _check_mesh(pred, "pred")
     _check_mesh(gt, "gt")
     try:
@@ -109,19 +106,10 @@ def geometry_metrics(pred, gt, thresholds_mm=DEFAULT_THRESHOLDS_MM, n_samples: i
         raise BftaichiError(f"thresholds_mm must be numbers (mm), got {thresholds_mm!r}") from None
     if not thresholds or not all(math.isfinite(t) and t > 0 for t in thresholds):
         raise BftaichiError(f"thresholds_mm must be positive finite numbers, got {thresholds_mm!r}")
-    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
-        raise BftaichiError(f"n_samples must be a positive integer, got {n_samples!r}")
-    if len(gt.faces) == 0 or not gt.area > 0:
-        raise BftaichiError("gt mesh has no surface (no faces or zero area)")
 
     n_pred_faces = int(len(pred.faces))
-    if n_pred_faces == 0 or not pred.area > 0:
-        d_pg = d_gp = None
-    else:
-        pts_p, _ = sample_surface(pred, int(n_samples), seed=seed)
-        pts_g, _ = sample_surface(gt, int(n_samples), seed=seed)
-        d_pg, _ = cKDTree(pts_g).query(pts_p, k=1, workers=-1)
-        d_gp, _ = cKDTree(pts_p).query(pts_g, k=1, workers=-1)
+    distances = surface_distances(pred, gt, n_samples, seed)
+    d_pg, d_gp = distances if distances is not None else (None, None)
 
     out: dict = {}
     if d_pg is None:
@@ -145,6 +133,38 @@ def geometry_metrics(pred, gt, thresholds_mm=DEFAULT_THRESHOLDS_MM, n_samples: i
         out[_threshold_key("fscore", t_mm)] = fscore
     out["n_pred_faces"] = n_pred_faces
     return out
+
+
+def surface_distances(pred, gt, n_samples: int = 200_000,
+                      seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+    """The sample-to-sample distances behind :func:`geometry_metrics`: ``n_samples`` points
+    sampled area-uniformly on each mesh with ``seed``, each matched to the nearest sample of the
+    other mesh.
+
+    Returns ``(d_pg, d_gp)``, two (n_samples,) float64 arrays in metres (``d_pg``: each
+    predicted sample to the ground truth, the accuracy side; ``d_gp``: each ground-truth sample
+    to the prediction, the completeness side), or None when ``pred`` has no surface (no faces or
+    zero area).
+
+    Raises:
+        BftaichiError (a ValueError) if ``gt`` has no surface, or an argument is invalid.
+    """
+    from scipy.spatial import cKDTree
+    from trimesh.sample import sample_surface
+
+    _check_mesh(pred, "pred")
+    _check_mesh(gt, "gt")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
+        raise BftaichiError(f"n_samples must be a positive integer, got {n_samples!r}")
+    if len(gt.faces) == 0 or not gt.area > 0:
+        raise BftaichiError("gt mesh has no surface (no faces or zero area)")
+    if len(pred.faces) == 0 or not pred.area > 0:
+        return None
+    pts_p, _ = sample_surface(pred, int(n_samples), seed=seed)
+    pts_g, _ = sample_surface(gt, int(n_samples), seed=seed)
+    d_pg, _ = cKDTree(pts_g).query(pts_p, k=1, workers=-1)
+    d_gp, _ = cKDTree(pts_p).query(pts_g, k=1, workers=-1)
+    return d_pg, d_gp
 
 
 # --------------------------------------------------------------------------------------------

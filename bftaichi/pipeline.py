@@ -100,11 +100,12 @@ class _Timer:
             self.seconds[stage] = round(self.seconds.get(stage, 0.0) + time.perf_counter() - t0, 4)
 
 
-def _progress(iterable, total: int, desc: str, enabled: bool):
+def _progress(iterable, total: int, desc: str, enabled: bool, unit: str = "frame"):
+    """A tqdm bar on stderr; off when ``enabled`` is False, and by itself (``disable=None``)
+    when stderr is not a terminal (CI, pipes)."""
     from tqdm import tqdm
 
-    # disable=None: tqdm turns itself off when stderr is not a terminal (CI, pipes).
-    return tqdm(iterable, total=total, desc=desc, unit="frame", disable=None if enabled else True,
+    return tqdm(iterable, total=total, desc=desc, unit=unit, disable=None if enabled else True,
                 leave=False)
 
 
@@ -269,7 +270,8 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         from .nbv import nbv_summary, rank_run
 
         with timer("nbv"):
-            report["nbv"] = nbv_summary(rank_run(post, cfg, frames, out))
+            bar = (lambda it: _progress(it, len(it), "nbv", progress, "view"))
+            report["nbv"] = nbv_summary(rank_run(post, cfg, frames, out, progress=bar))
         report["seconds"]["nbv"] = timer.seconds["nbv"]
         report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
     write_json(out / "report.json", report)

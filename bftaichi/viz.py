@@ -36,7 +36,12 @@ import numpy as np
 
 from .errors import DataError
 
-__all__ = ["build_scene", "preview_html", "write_preview", "serve"]
+__all__ = ["build_scene", "preview_html", "write_preview", "serve", "screenshot"]
+
+CHROMIUM = "/usr/bin/chromium"
+#: Flags for a headless Chromium that renders WebGL on the CPU and talks to no network service.
+CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                  "--disable-component-update", "--no-first-run")
 
 MAX_FACES = 200_000
 
@@ -379,3 +384,26 @@ def serve(out_dir, *, timeout_s: float | None = None, max_faces: int = MAX_FACES
                 stream.close()
         for sig, handler in handlers.items():
             signal.signal(sig, handler)
+
+
+def screenshot(url: str, png_path, size=(800, 600), wait_ms: int = 20000,
+               chromium: str = CHROMIUM) -> Path:
+    """Screenshot ``url`` (e.g. ``Path("preview.html").as_uri()``) with headless Chromium
+    (Debian's ``chromium``) into ``png_path``, after up to ``wait_ms`` of virtual time for the
+    page's scripts, with a fresh throw-away profile. Raises DataError if Chromium is missing or
+    writes no image."""
+    import shutil
+    import subprocess
+    import tempfile
+
+    if not Path(chromium).exists() and shutil.which(chromium) is None:
+        raise DataError(f"{chromium} not found: install Debian's chromium package")
+    png_path = Path(png_path)
+    with tempfile.TemporaryDirectory(prefix="bftaichi-chromium-") as profile:
+        cmd = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
+               f"--window-size={size[0]},{size[1]}", f"--virtual-time-budget={wait_ms}",
+               f"--screenshot={png_path}", url]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+    if not png_path.exists():
+        raise DataError(f"chromium wrote no screenshot of {url}: {proc.stderr[-1000:]}")
+    return png_path

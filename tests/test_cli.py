@@ -15,7 +15,7 @@ from bftaichi.io import read_mesh_ply
 
 from conftest import TINY_SCENE_SETS
 
-RUN_FILES = ("tsdf_mesh.ply", "band.npz", "report.json", "config.toml", "mesh.ply")
+RUN_FILES = ("tsdf_mesh.ply", "band.npz", "report.json", "config.toml", "mesh.ply", "preview.html")
 
 
 def sets_args(sets=TINY_SCENE_SETS) -> list[str]:
@@ -330,3 +330,17 @@ def test_two_runs_write_byte_identical_outputs(tiny_run, tmp_path, capsys):
     assert rc == 0, err
     for name in ("band.npz", "tsdf_mesh.ply"):
         assert (tmp_path / "again" / name).read_bytes() == (tiny_run / name).read_bytes(), name
+
+
+def test_run_summary_compact_verbose_and_quiet(tmp_path, capsys):
+    assert main(["run", "--out", str(tmp_path / "a"), *sets_args(), "--set",
+                 "run.preview=false"]) == 0
+    compact = capsys.readouterr().out
+    assert "fscore@" in compact and "precision@" not in compact
+    assert "seconds per stage" not in compact and "preview.html" not in compact
+    assert main(["run", "-v", "--out", str(tmp_path / "b"), *sets_args()]) == 0
+    verbose = capsys.readouterr().out
+    assert "precision@" in verbose and "seconds per stage" in verbose
+    assert "posterior seconds" in verbose and "preview.html" in verbose
+    assert main(["run", "-q", "--out", str(tmp_path / "c"), *sets_args()]) == 0
+    assert capsys.readouterr().out == ""

@@ -65,12 +65,20 @@ def test_calibration_reports_coverage_and_rank_correlation(tmp_path):
 
 def test_reproduce_paper_prints_the_three_rows(tmp_path):
     out = _run([TOOLS / "reproduce_paper.py", "--set", "synthetic.n_views=4",
-                "--markdown", tmp_path / "t.md", "--fig3", tmp_path / "fig3.png",
-                "--fig3-seeds", "1", "--fig3-probes", "4,8"])
+                "--markdown", tmp_path / "t.md", "--fig2", tmp_path / "fig2.png",
+                "--fig3", tmp_path / "fig3.png", "--fig3-seeds", "1", "--fig3-probes", "4,8"])
     for row in ("TSDF bootstrap", "BayesFusion-SDF, no anchor", "BayesFusion-SDF + anchor",
                 "bftaichi default (+ curvature prior)"):
         assert f"| {row} |" in out
     assert (tmp_path / "t.md").read_text().startswith("| method |")
+    fig2 = out.split("Fig. 2:")[1].splitlines()
+    assert fig2[1].startswith("| method | prior.anchors | P@20 | R@20 | F@20 |")
+    rows = {ln.split("|")[2].strip(): [float(c) for c in ln.strip("| ").split("|")[2:]]
+            for ln in fig2[3:7]}
+    assert list(rows) == ["-", "none", "boundary", "all"]
+    for p, r, f in rows.values():  # P, R in [0, 1] and F their harmonic mean (4 decimals)
+        assert 0 <= p <= 1 and 0 <= r <= 1 and abs(f - 2 * p * r / (p + r)) < 2e-4
+    assert (tmp_path / "fig2.png").stat().st_size > 5000
     fig3 = [ln for ln in out.splitlines() if ln.startswith("| 4 |") or ln.startswith("| 8 |")]
     assert len(fig3) == 2 and all(float(ln.split("|")[2].split()[0]) > 0 for ln in fig3)
     assert (tmp_path / "fig3.png").stat().st_size > 1000

@@ -17,27 +17,19 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from bftaichi import viz
 from bftaichi.cli import main
 from bftaichi.viz import _colormap, _decimate, _page, _Recorder, preview_html
 from conftest import TINY_SCENE_SETS
 
-CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM = Path(viz.CHROMIUM)
 needs_browser = pytest.mark.skipif(not CHROMIUM.exists() and not os.environ.get("CI"),
                                    reason="Debian's chromium is not installed")
 
 
 def screenshot(url: str, tmp_path: Path, name: str = "shot.png") -> np.ndarray:
-    """(H, W, 3) uint8 screenshot of ``url`` by headless Chromium (fresh profile, no network
-    services), after up to 20 s of virtual time for the page's scripts."""
-    out = tmp_path / name
-    profile = tmp_path / f"profile-{name}"
-    cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu",
-           "--disable-background-networking", "--disable-component-update", "--no-first-run",
-           f"--user-data-dir={profile}", "--window-size=800,600",
-           "--virtual-time-budget=20000", f"--screenshot={out}", url]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert out.exists(), proc.stderr[-2000:]
-    return np.asarray(Image.open(out).convert("RGB"))
+    """(H, W, 3) uint8 screenshot of ``url`` by headless Chromium (bftaichi.viz.screenshot)."""
+    return np.asarray(Image.open(viz.screenshot(url, tmp_path / name)).convert("RGB"))
 
 
 def drawn(img: np.ndarray) -> float:

@@ -1,0 +1,322 @@
+"""Diagnostic plots of a finished run (:func:`write_run_plots`), PNGs in ``<run>/plots/``.
+
+Each plot is drawn from the run folder (``report.json``'s dict, ``mesh.ply``, ``tsdf_mesh.ply``,
+``band.npz``) plus what the folder does not hold, the ground-truth mesh; a plot whose inputs are
+absent is skipped:
+
+===================== ============================================================== ==========
+plot                  shows                                                          needs
+===================== ============================================================== ==========
+precision_recall.png  precision and recall against the distance threshold, one        ground
+                      curve pair per mesh (``mesh.ply``, ``tsdf_mesh.ply``)           truth
+fscore.png            F-score against the threshold, same data                        ground
+                                                                                      truth
+sigma_histogram.png   posterior sigma of the near-surface band voxels and of the      posterior
+                      ``mesh.ply`` vertices
+calibration.png       observed against Gaussian-expected coverage of ``|e| <= k sigma`` posterior,
+                      over the voxels of ``report["uncertainty"]``                    ground
+                                                                                      truth
+pcg_residual.png      the MAP PCG relative residual against iteration                 posterior
+===================== ============================================================== ==========
+
+"posterior" means a ``run.stages = "full"`` run (a ``"tsdf_only"`` run gets the TSDF curves of the
+first two plots and nothing else). The curves use :func:`bftaichi.metrics.surface_distances` with
+the run's ``eval.n_samples`` and ``eval.seed``, so at the run's ``eval.thresholds_mm`` they are the
+report's precision and recall exactly; the calibration uses the voxels and truth of
+:func:`bftaichi.pipeline.band_uncertainty`.
+
+Figures are drawn on a bare ``matplotlib.figure.Figure`` (Agg canvas, no pyplot state, so the
+caller's backend is left alone) and written atomically.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import BftaichiError
+
+__all__ = ["write_run_plots", "threshold_curves", "curve_thresholds_mm", "band_errors",
+           "coverage_curve", "save_png"]
+
+#: The run's meshes, in plotting order, with their legend labels.
+MESHES = {"mesh.ply": "posterior mean (mesh.ply)", "tsdf_mesh.ply": "TSDF bootstrap (tsdf_mesh.ply)"}
+
+
+def curve_thresholds_mm(voxel_size_m: float, extra_mm=(), n: int = 40) -> np.ndarray:
+    """Thresholds for a precision / recall curve, millimetres, ascending: ``n`` log-spaced from
+    half a voxel (below that the sample spacing dominates) to 50 voxels (where every run is
+    near 1), merged with ``extra_mm`` (the run's ``eval.thresholds_mm``, so the report's values
+    lie on the curve)."""
+    vs_mm = 1000.0 * float(voxel_size_m)
+    grid = np.geomspace(0.5 * vs_mm, 50.0 * vs_mm, int(n))
+    return np.unique(np.concatenate([grid, np.asarray(extra_mm, np.float64)]))
+
+
+def threshold_curves(d_pg: np.ndarray, d_gp: np.ndarray, thresholds_mm) -> dict:
+    """Precision, recall and F-score at each threshold, from the two distance arrays of
+    :func:`bftaichi.metrics.surface_distances` (metres): ``precision(t) = frac(d_pg < t)``,
+    ``recall(t) = frac(d_gp < t)``, ``F = 2 P R / (P + R)`` (0 when both are 0), with the
+    threshold converted as :func:`bftaichi.metrics.geometry_metrics` does (``t_mm / 1000``), so
+    at the same thresholds the values are identical to its.
+
+    Returns ``{"threshold_mm", "precision", "recall", "fscore"}``, float64 arrays of the
+    thresholds' length (non-decreasing in the threshold for ascending thresholds).
+    """
+    d_pg = np.sort(np.asarray(d_pg, np.float64).ravel())
+    d_gp = np.sort(np.asarray(d_gp, np.float64).ravel())
+    t_mm = np.asarray(thresholds_mm, np.float64).ravel()
+    if len(d_pg) == 0 or len(d_gp) == 0:
+        raise BftaichiError("threshold_curves needs non-empty distance arrays")
+    t = t_mm / 1000.0
+    # searchsorted(..., "left") counts the distances strictly below t: the count of d < t.
+    precision = np.searchsorted(d_pg, t, side="left") / len(d_pg)
+    recall = np.searchsorted(d_gp, t, side="left") / len(d_gp)
+    total = precision + recall
+    fscore = np.divide(2.0 * precision * recall, total, out=np.zeros_like(total), where=total > 0)
+    return {"threshold_mm": t_mm, "precision": precision, "recall": recall, "fscore": fscore}
+
+
+def band_errors(post, gt, near_voxels: float = 1.0, seed: int = 0):
+    """The (error, sigma) pairs that :func:`bftaichi.pipeline.band_uncertainty` judges: observed
+    band voxels (bootstrap weight > 0) within ``near_voxels`` voxels of the true surface, with
+    ``error = post.mean - phi`` (phi: :func:`bftaichi.metrics.surface_sdf` sampled every voxel /
+    4, same seed). Returns two float64 arrays in metres, or None when fewer than 2 voxels
+    qualify."""
+    from .metrics import surface_sdf
+
+    vs = post.voxel_size
+    centres = (post.ijk.astype(np.float64) + 0.5) * vs
+    phi, valid = surface_sdf(gt, centres, spacing_m=vs / 4, seed=seed)
+    near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
+    if np.count_nonzero(near) < 2:
+        return None
+    return (post.mean[near].astype(np.float64) - phi[near],
+            post.sigma[near].astype(np.float64))
+
+
+def coverage_curve(error: np.ndarray, sigma: np.ndarray, k: np.ndarray):
+    """For each sigma multiple ``k``: the coverage a Gaussian error would have,
+    ``erf(k / sqrt 2)``, and the observed fraction with ``|error| <= k sigma`` (computed as
+    :func:`bftaichi.metrics.uncertainty_metrics` computes ``coverage@ksigma``). Returns
+    ``(expected, observed)``, float64 arrays like ``k``."""
+    from scipy.special import erf
+
+    k = np.asarray(k, np.float64)
+    z = np.sort(np.abs(np.asarray(error, np.float64)) /
+                np.maximum(np.asarray(sigma, np.float64), np.finfo(np.float64).tiny))
+    observed = np.searchsorted(z, k, side="right") / len(z)  # count of z <= k
+    return erf(k / math.sqrt(2.0)), observed
+
+
+# --------------------------------------------------------------------------------------------
+# the plots
+# --------------------------------------------------------------------------------------------
+
+def _figure(figsize=(6.4, 4.4)):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, dpi=110)
+    return fig, fig.add_subplot()
+
+
+def save_png(fig, path: str | os.PathLike) -> Path:
+    """Lay out matplotlib figure ``fig`` and write it to ``path`` as PNG, atomically (rendered
+    into memory, then :func:`bftaichi.io.atomic_write_bytes`); return the path."""
+    from .io import atomic_write_bytes
+
+    path = Path(path)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def _plot_precision_recall(curves: dict, report: dict, path: Path) -> Path:
+    fig, ax = _figure()
+    for i, (name, c) in enumerate(curves.items()):
+        color = f"C{i}"
+        ax.plot(c["threshold_mm"], c["precision"], color=color, label=f"precision, {MESHES[name]}")
+        ax.plot(c["threshold_mm"], c["recall"], color=color, ls="--",
+                label=f"recall, {MESHES[name]}")
+        _mark_report(ax, report["metrics"].get(name, {}), ("precision", "recall"), color)
+    lowest = min(min(c["precision"][0], c["recall"][0]) for c in curves.values())
+    _threshold_axes(ax, report, "precision / recall", lowest,
+                    f"{report['scene']}: precision and recall vs threshold")
+    return save_png(fig, path)
+
+
+def _plot_fscore(curves: dict, report: dict, path: Path) -> Path:
+    fig, ax = _figure()
+    for i, (name, c) in enumerate(curves.items()):
+        ax.plot(c["threshold_mm"], c["fscore"], color=f"C{i}", label=MESHES[name])
+        _mark_report(ax, report["metrics"].get(name, {}), ("fscore",), f"C{i}")
+    lowest = min(c["fscore"][0] for c in curves.values())
+    _threshold_axes(ax, report, "F-score", lowest, f"{report['scene']}: F-score vs threshold")
+    return save_png(fig, path)
+
+
+def _mark_report(ax, metrics: dict, kinds, color) -> None:
+    """Dots at the report's own thresholds (they lie on the curves)."""
+    for kind in kinds:
+        pts = [(float(k.split("@")[1][:-2]), v) for k, v in metrics.items()
+               if k.startswith(f"{kind}@")]
+        if pts:
+            ax.plot(*zip(*pts), ls="none", marker="o", ms=4, color=color)
+
+
+def _threshold_axes(ax, report: dict, ylabel: str, lowest: float, title: str) -> None:
+    """Log threshold axis with the voxel size marked; y from the lowest value (rounded down to
+    0.1, some room below) to 1."""
+    bottom = max(0.0, math.floor(10 * (lowest - 0.05)) / 10)
+    vs_mm = 1000.0 * report["tsdf"]["voxel_size_m"]
+    ax.axvline(vs_mm, color="0.6", lw=0.8, ls=":")
+    ax.text(vs_mm, bottom + 0.01 * (1 - bottom), " 1 voxel", color="0.4", fontsize=8)
+    ax.set(xscale="log", xlabel="distance threshold [mm]", ylabel=ylabel,
+           ylim=(bottom, 1 + 0.02 * (1 - bottom)), title=title)
+    _plain_log_ticks(ax)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, title="dots: report.json thresholds", title_fontsize=8)
+
+
+def _plain_log_ticks(ax, subs=(2.0, 5.0)) -> None:
+    """Tick labels 5, 10, 20 on a log x axis, not 5x10^0; labelled minor ticks at ``subs``."""
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_locator(LogLocator(subs=subs))
+    ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+
+
+def _plot_sigma_histogram(post, vertex_sigma, report: dict, path: Path) -> Path:
+    near_voxels = float(report["config"]["eval"]["near_voxels"])
+    near = (post.weight > 0) & (np.abs(post.mean) <= near_voxels * post.voxel_size)
+    series = {f"band voxels, |mean| <= {near_voxels:g} voxel ({np.count_nonzero(near)})":
+              post.sigma[near]}
+    if vertex_sigma is not None and len(vertex_sigma):
+        series[f"mesh.ply vertices ({len(vertex_sigma)})"] = vertex_sigma
+    series = {k: 1000.0 * np.asarray(v, np.float64) for k, v in series.items()}
+    series = {k: v[np.isfinite(v) & (v > 0)] for k, v in series.items()}
+    series = {k: v for k, v in series.items() if len(v)}
+    fig, ax = _figure()
+    if series:
+        lo = min(v.min() for v in series.values())
+        hi = max(v.max() for v in series.values())
+        bins = np.geomspace(lo, hi * (1 + 1e-9), 41) if hi > lo else 10
+        for i, (label, v) in enumerate(series.items()):
+            ax.hist(v, bins=bins, weights=np.full(len(v), 1.0 / len(v)), histtype="step",
+                    lw=1.5, color=f"C{i}", label=f"{label}, median {np.median(v):.2f} mm")
+        ax.set_xscale("log")
+        _plain_log_ticks(ax, subs=(1.5, 2.0, 3.0, 5.0, 7.0))
+        ax.set_ylim(0, 1.3 * ax.get_ylim()[1])  # headroom for the legend
+        ax.legend(fontsize=8, loc="upper left")
+    ax.set(xlabel="posterior sigma [mm]", ylabel="fraction per bin",
+           title=f"{report['scene']}: posterior sigma near the surface")
+    ax.grid(alpha=0.3, which="both")
+    return save_png(fig, path)
+
+
+def _plot_calibration(error, sigma, report: dict, path: Path) -> Path:
+    k = np.linspace(0.0, 4.0, 161)
+    expected, observed = coverage_curve(error, sigma, k)
+    fig, ax = _figure((5.2, 5.0))
+    ax.plot([0, 1], [0, 1], color="0.5", lw=1, ls="--", label="calibrated (Gaussian)")
+    ax.plot(expected, observed, color="C0", label=f"posterior ({len(error)} voxels)")
+    e3, o3 = coverage_curve(error, sigma, np.array([1.0, 2.0, 3.0]))
+    ax.plot(e3, o3, ls="none", marker="o", ms=4, color="C0")
+    for kk, x, y in zip((1, 2, 3), e3, o3):
+        ax.annotate(f"{kk}", (x, y), textcoords="offset points", xytext=(-10, 4), fontsize=8,
+                    color="C0")
+    ax.text(0.98, 0.02, "coverage at 1 / 2 / 3 sigma (dots):\n"
+            + " / ".join(f"{100 * y:.1f}" for y in o3) + " % observed\n"
+            "68.3 / 95.4 / 99.7 % Gaussian\n\n"
+            "above the diagonal: sigma conservative\nbelow: overconfident",
+            transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
+    near = report["config"]["eval"]["near_voxels"]
+    ax.set(xlabel="expected coverage erf(k / sqrt 2) [fraction]",
+           ylabel="observed fraction with |error| <= k sigma",
+           xlim=(0, 1), ylim=(0, 1.01), aspect="equal",
+           title=f"{report['scene']}: sigma calibration\n(band voxels within {near:g} voxel "
+                 "of the true surface)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    return save_png(fig, path)
+
+
+def _plot_pcg_residual(solver: dict, report: dict, path: Path) -> Path:
+    history = np.asarray(solver["residual_history"], np.float64)
+    fig, ax = _figure()
+    ax.semilogy(np.arange(len(history)), history, color="C0", lw=1.2,
+                label=f"converged={solver['converged']} after {solver['iterations']} iterations")
+    tol = report["config"]["solver"]["tol"]
+    ax.axhline(tol, color="C3", lw=0.8, ls="--", label=f"solver.tol = {tol:g}")
+    ax.set(xlabel="PCG iteration", ylabel="relative residual ||b - Q x|| / ||b||",
+           title=f"{report['scene']}: MAP solve (PCG) convergence")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return save_png(fig, path)
+
+
+def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None) -> list[Path]:
+    """Write the diagnostic PNGs of the run in ``out_dir`` into ``out_dir / "plots"``; return
+    their paths, in the order of the module table (plots whose inputs are absent are skipped).
+
+    Args:
+        report: the run's report (the dict :func:`bftaichi.run` returns, or its report.json).
+        out_dir: the run folder (holding ``tsdf_mesh.ply`` and, for a full run, ``mesh.ply``
+            and ``band.npz``).
+        post: the run's :class:`bftaichi.posterior.Posterior` (saves reloading it); default:
+            loaded from ``band.npz`` when the run solved one. Ignored for a tsdf_only run.
+        gt: ground-truth ``trimesh.Trimesh`` (metres, world frame), for the precision / recall,
+            F-score and calibration plots; None skips them.
+
+    Raises:
+        BftaichiError naming the missing file or key when ``out_dir`` does not hold the run.
+    """
+    from .io import ensure_out_dir, read_mesh_ply
+    from .metrics import load_mesh, surface_distances
+
+    out = Path(out_dir)
+    if not isinstance(report, dict) or not {"scene", "tsdf", "config", "solver"} <= set(report):
+        raise BftaichiError("write_run_plots: report must be a run's report dict (report.json), "
+                            "with scene, tsdf, solver and config")
+    solved = report["solver"] is not None
+    names = [n for n in MESHES if solved or n != "mesh.ply"]
+    missing = [n for n in names if not (out / n).is_file()]
+    if missing:
+        raise BftaichiError(f"{out}: missing {', '.join(missing)}: not the folder of this run")
+    if solved and post is None:
+        from .posterior import Posterior
+
+        post = Posterior.load(out / "band.npz")
+    plots = ensure_out_dir(out / "plots")
+    ev = report["config"]["eval"]
+    written = []
+    if gt is not None:
+        thresholds = curve_thresholds_mm(report["tsdf"]["voxel_size_m"], ev["thresholds_mm"])
+        curves = {}
+        for name in names:
+            distances = surface_distances(load_mesh(out / name), gt, int(ev["n_samples"]),
+                                          int(ev["seed"]))
+            if distances is not None:
+                curves[name] = threshold_curves(*distances, thresholds)
+        if curves:
+            written.append(_plot_precision_recall(curves, report, plots / "precision_recall.png"))
+            written.append(_plot_fscore(curves, report, plots / "fscore.png"))
+    if solved:
+        _, _, attrs = read_mesh_ply(out / "mesh.ply")
+        written.append(_plot_sigma_histogram(post, attrs.get("sigma"), report,
+                                             plots / "sigma_histogram.png"))
+        pairs = (band_errors(post, gt, float(ev["near_voxels"]), int(ev["seed"]))
+                 if gt is not None else None)
+        if pairs is not None:
+            written.append(_plot_calibration(*pairs, report, plots / "calibration.png"))
+        if report["solver"]["map"].get("residual_history"):
+            written.append(_plot_pcg_residual(report["solver"]["map"], report,
+                                              plots / "pcg_residual.png"))
+    return written
