@@ -4,20 +4,14 @@ Each plot is drawn from the run folder (``report.json``'s dict, ``mesh.ply``, ``
 ``band.npz``) plus what the folder does not hold, the ground-truth mesh; a plot whose inputs are
 absent is skipped:
 
-===================== ============================================================== ==========
-plot                  shows                                                          needs
-===================== ============================================================== ==========
-precision_recall.png  precision and recall against the distance threshold, one        ground
-                      curve pair per mesh (``mesh.ply``, ``tsdf_mesh.ply``)           truth
-fscore.png            F-score against the threshold, same data                        ground
-                                                                                      truth
-sigma_histogram.png   posterior sigma of the near-surface band voxels and of the      posterior
-                      ``mesh.ply`` vertices
-calibration.png       observed against Gaussian-expected coverage of ``|e| <= k sigma`` posterior,
-                      over the voxels of ``report["uncertainty"]``                    ground
-                                                                                      truth
-pcg_residual.png      the MAP PCG relative residual against iteration                 posterior
-===================== ============================================================== ==========
+- ``precision_recall.png`` (needs the ground truth): precision and recall against the
+  distance threshold, one curve pair per mesh (``mesh.ply``, ``tsdf_mesh.ply``);
+- ``fscore.png`` (ground truth): F-score against the threshold, same data;
+- ``sigma_histogram.png`` (posterior): posterior sigma of the near-surface band voxels
+  (``|mean| <= eval.near_voxels`` voxels, weight > 0) and of the ``mesh.ply`` vertices;
+- ``calibration.png`` (posterior and ground truth): observed against Gaussian-expected coverage
+  of ``|e| <= k sigma`` over the voxels of ``report["uncertainty"]``;
+- ``pcg_residual.png`` (posterior): the MAP PCG relative residual against iteration.
 
 "posterior" means a ``run.stages = "full"`` run (a ``"tsdf_only"`` run gets the TSDF curves of the
 first two plots and nothing else). The curves use :func:`bftaichi.metrics.surface_distances` with
@@ -44,7 +38,8 @@ __all__ = ["write_run_plots", "threshold_curves", "curve_thresholds_mm", "band_e
            "coverage_curve", "save_png"]
 
 #: The run's meshes, in plotting order, with their legend labels.
-MESHES = {"mesh.ply": "posterior mean (mesh.ply)", "tsdf_mesh.ply": "TSDF bootstrap (tsdf_mesh.ply)"}
+MESHES = {"mesh.ply": "posterior mean (mesh.ply)",
+          "tsdf_mesh.ply": "TSDF bootstrap (tsdf_mesh.ply)"}
 
 
 def curve_thresholds_mm(voxel_size_m: float, extra_mm=(), n: int = 40) -> np.ndarray:
@@ -86,7 +81,7 @@ def band_errors(post, gt, near_voxels: float = 1.0, seed: int = 0):
     band voxels (bootstrap weight > 0) within ``near_voxels`` voxels of the true surface, with
     ``error = post.mean - phi`` (phi: :func:`bftaichi.metrics.surface_sdf` sampled every voxel /
     4, same seed). Returns two float64 arrays in metres, or None when fewer than 2 voxels
-    qualify."""
+    qualify. (band_uncertainty makes the same selection itself: change both together.)"""
     from .metrics import surface_sdf
 
     vs = post.voxel_size
@@ -264,7 +259,7 @@ def _plot_pcg_residual(solver: dict, report: dict, path: Path) -> Path:
 
 def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None) -> list[Path]:
     """Write the diagnostic PNGs of the run in ``out_dir`` into ``out_dir / "plots"``; return
-    their paths, in the order of the module table (plots whose inputs are absent are skipped).
+    their paths, in the order of the module's list (plots whose inputs are absent are skipped).
 
     Args:
         report: the run's report (the dict :func:`bftaichi.run` returns, or its report.json).
@@ -276,7 +271,8 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
             F-score and calibration plots; None skips them.
 
     Raises:
-        BftaichiError naming the missing file or key when ``out_dir`` does not hold the run.
+        BftaichiError naming the missing files when ``out_dir`` does not hold the run, or when
+        ``report`` is not a run's report.
     """
     from .io import ensure_out_dir, read_mesh_ply
     from .metrics import load_mesh, surface_distances

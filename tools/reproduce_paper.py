@@ -11,7 +11,12 @@ settings; bftaichi's defaults are used otherwise.
     python tools/reproduce_paper.py                       # table on stdout
     python tools/reproduce_paper.py --markdown paper.md   # also write it as Markdown
     python tools/reproduce_paper.py --set prior.lam=4     # any override, applied to every row
+    python tools/reproduce_paper.py --fig2 fig2.png       # also the paper's Fig. 2 panels
     python tools/reproduce_paper.py --fig3 fig3.png       # also the paper's Fig. 3 trend
+
+Fig. 2 (``--fig2``): F@20mm against the anchor setting (none / boundary / all, paper model, the
+TSDF bootstrap as reference line) and 20 mm precision against recall, one point per method; it
+adds a run with ``prior.anchors=all`` and prints the numbers as a Markdown table.
 
 Fig. 3 (``--fig3``): the mean top-view utility (``bftaichi.nbv``: the best of 48 hemisphere
 candidates at 1.5 m) of the unanchored and the anchored posterior (paper model) at K = 8, 16
@@ -36,17 +41,26 @@ PAPER = {  # BayesFusion-SDF, Table 2: CD, Acc, Comp, F@20, F@50
 }
 PAPER_MODEL = ["prior.curvature=0"]  # the paper's GMRF: membrane (+ anchors), no curvature term
 DEFAULT_ROW = "bftaichi default (+ curvature prior)"
+ALL_ROW = "BayesFusion-SDF + all anchors"
+#: Fig. 2: the paper-model rows by anchor setting (prior.anchors).
+FIG2_ANCHORS = {"none": "BayesFusion-SDF, no anchor", "boundary": "BayesFusion-SDF + anchor",
+                "all": ALL_ROW}
 KEYS = ("chamfer_l2", "accuracy_m", "completeness_m", "fscore@20mm", "fscore@50mm")
 
 
-def run_rows(scene: Path, sets: list[str]) -> dict[str, dict]:
+def run_rows(scene: Path, sets: list[str], all_anchors: bool = False) -> dict[str, dict]:
+    """Metrics of ``mesh.ply`` per row (``tsdf_mesh.ply`` for the TSDF bootstrap), each with the
+    MAP solver stats under ``_solver``; ``all_anchors`` adds the paper model with
+    ``prior.anchors=all`` (:data:`ALL_ROW`, for Fig. 2)."""
     import bftaichi as bf
 
+    models = [(FIG2_ANCHORS[a], PAPER_MODEL + [f"prior.anchors={a}"]) for a in ("none", "boundary")]
+    if all_anchors:
+        models.append((ALL_ROW, PAPER_MODEL + ["prior.anchors=all"]))
+    models.append((DEFAULT_ROW, ["prior.anchors=boundary"]))
     rows = {}
     with tempfile.TemporaryDirectory(prefix="bftaichi-paper-") as tmp:
-        for key, model in (("BayesFusion-SDF, no anchor", PAPER_MODEL + ["prior.anchors=none"]),
-                           ("BayesFusion-SDF + anchor", PAPER_MODEL + ["prior.anchors=boundary"]),
-                           (DEFAULT_ROW, ["prior.anchors=boundary"])):
+        for key, model in models:
             cfg = bf.load_config(scene, [*model, *sets,
                                          "eval.thresholds_mm=[5.0, 10.0, 20.0, 50.0]"])
             report = bf.run(cfg, Path(tmp) / key, overwrite=True, progress=False)
@@ -91,12 +105,12 @@ def fig3_rows(scene: Path, sets: list[str], probes=(8, 16, 32), seeds: int = 3) 
 
 
 def plot_fig3(rows: dict, path: Path) -> None:
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from bftaichi.plots import save_png
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=110)
+    fig = Figure(figsize=(10, 3.8), dpi=110)
+    axes = fig.subplots(1, 2)
     for ax, part, title in zip(axes, ("total", "known"),
                                ("utility (known surface + unseen space)",
                                 "known-surface part (the paper's utility)")):
@@ -109,9 +123,66 @@ def plot_fig3(rows: dict, path: Path) -> None:
                title=f"seed_sphere: {title}")
         ax.grid(alpha=0.3)
         ax.legend()
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    save_png(fig, path)
+
+
+def fig2_markdown(rows: dict[str, dict]) -> str:
+    """Fig. 2's numbers: 20 mm precision, recall and F-score per method."""
+    lines = ["| method | prior.anchors | P@20 | R@20 | F@20 |", "|---|---|---|---|---|"]
+    for anchors, name in [("-", "TSDF bootstrap"), *FIG2_ANCHORS.items()]:
+        m = rows[name]
+        lines.append(f"| {name} | {anchors} | {m['precision@20mm']:.4f} | "
+                     f"{m['recall@20mm']:.4f} | {m['fscore@20mm']:.4f} |")
+    return "\n".join(lines)
+
+
+def plot_fig2(rows: dict[str, dict], path: Path) -> None:
+    """Two panels: F@20mm by anchor setting (TSDF bootstrap as reference line), and 20 mm
+    precision against recall, one point per method, over iso-F contours. Both zoom to the data
+    (the methods differ by less than 0.05)."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    from bftaichi.plots import save_png
+
+    fig = Figure(figsize=(10, 4.2), dpi=110)
+    ax_f, ax_pr = fig.subplots(1, 2)
+    colors = dict(zip(["TSDF bootstrap", *FIG2_ANCHORS.values()], ["C0", "C1", "C2", "C3"]))
+    f = [rows[name]["fscore@20mm"] for name in FIG2_ANCHORS.values()]
+    x = np.arange(len(f))
+    ax_f.plot(x, f, color="0.4", lw=1, zorder=1)
+    ax_f.scatter(x, f, c=[colors[n] for n in FIG2_ANCHORS.values()], s=60, zorder=2)
+    for xi, fi in zip(x, f):
+        ax_f.annotate(f"{fi:.4f}", (xi, fi), textcoords="offset points", xytext=(0, 8),
+                      ha="center", fontsize=8)
+    tsdf = rows["TSDF bootstrap"]
+    ax_f.axhline(tsdf["fscore@20mm"], color=colors["TSDF bootstrap"], ls="--",
+                 label=f"TSDF bootstrap ({tsdf['fscore@20mm']:.4f})")
+    ax_f.set(xticks=x, xticklabels=list(FIG2_ANCHORS), xlim=(-0.5, len(f) - 0.5),
+             xlabel="prior.anchors (paper model: membrane, no curvature)",
+             ylabel="F-score at 20 mm", title="seed_sphere: F@20mm vs anchor")
+    ax_f.margins(y=0.35)
+    ax_f.legend(loc="lower right", fontsize=8)
+
+    names = list(colors)
+    rec = np.array([rows[n]["recall@20mm"] for n in names])
+    prec = np.array([rows[n]["precision@20mm"] for n in names])
+    pad = max(0.01, 0.25 * max(np.ptp(rec), np.ptp(prec)))
+    lo_r, hi_r = rec.min() - pad, min(1.0, rec.max() + pad) + 0.002
+    lo_p, hi_p = prec.min() - pad, min(1.0, prec.max() + pad) + 0.002
+    R, P = np.meshgrid(np.linspace(lo_r, hi_r, 200), np.linspace(lo_p, hi_p, 200))
+    iso = ax_pr.contour(R, P, 2 * P * R / (P + R), levels=6, colors="0.75", linewidths=0.8,
+                        linestyles=":")
+    ax_pr.clabel(iso, fmt="F=%.3f", fontsize=7)
+    for name in names:
+        ax_pr.plot(rows[name]["recall@20mm"], rows[name]["precision@20mm"], "o", ms=8,
+                   color=colors[name], label=name)
+    ax_pr.set(xlabel="recall at 20 mm [fraction]", ylabel="precision at 20 mm [fraction]",
+              xlim=(lo_r, hi_r), ylim=(lo_p, hi_p), title="seed_sphere: 20 mm precision vs recall")
+    for ax in (ax_f, ax_pr):
+        ax.grid(alpha=0.3)
+    ax_pr.legend(loc="lower left", fontsize=8)
+    save_png(fig, path)
 
 
 def markdown(rows: dict[str, dict]) -> str:
@@ -134,21 +205,27 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default=str(ROOT / "scenes" / "seed_sphere.toml"))
     ap.add_argument("--set", dest="sets", action="append", default=[], help="override (repeatable)")
     ap.add_argument("--markdown", help="write the table as Markdown to this file")
+    ap.add_argument("--fig2", help="also run prior.anchors=all and plot Fig. 2 to this PNG")
     ap.add_argument("--fig3", help="also reproduce the Fig. 3 trend and plot it to this PNG")
     ap.add_argument("--fig3-seeds", type=int, default=3, help="probe seeds averaged per point")
     ap.add_argument("--fig3-probes", default="8,16,32", help="probe counts K")
     args = ap.parse_args(argv)
-    rows = run_rows(Path(args.scene), args.sets)
+    rows = run_rows(Path(args.scene), args.sets, all_anchors=bool(args.fig2))
     table = markdown(rows)
     print("Paper Table 2 (controlled scene), bftaichi / published (CD in m^2, Acc and Comp in m):")
     print(table)
-    for name in [*PAPER, DEFAULT_ROW]:
-        if "_solver" in rows[name]:
+    for name in [*PAPER, ALL_ROW, DEFAULT_ROW]:
+        if "_solver" in rows.get(name, {}):
             s = rows[name]["_solver"]
             print(f"{name}: PCG converged={s['converged']} after {s['iterations']} iterations, "
                   f"relative residual {s['relative_residual']:.1e}")
     if args.markdown:
         Path(args.markdown).write_text(table + "\n")
+    if args.fig2:
+        print("\nFig. 2: 20 mm precision / recall / F-score by anchor setting (paper model)")
+        print(fig2_markdown(rows))
+        plot_fig2(rows, Path(args.fig2))
+        print(f"wrote {args.fig2}")
     if args.fig3:
         probes = [int(k) for k in args.fig3_probes.split(",")]
         fig = fig3_rows(Path(args.scene), args.sets, probes, args.fig3_seeds)
