@@ -561,6 +561,11 @@ class RunConfig:
     """``full`` (TSDF bootstrap + probabilistic posterior: tsdf_mesh.ply and mesh.ply with sigma)
     or ``tsdf_only`` (the bootstrap alone, e.g. as a fast baseline)."""
 
+    plots: bool = True
+    """Write diagnostic PNGs into ``plots/`` at the end of a run (``bftaichi.plots``:
+    precision / recall and F-score against threshold, sigma histogram, calibration, PCG
+    residual; those without their inputs, e.g. without ground truth, are skipped)."""
+
     preview: bool = True
     """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.viz``)
     at the end of a run."""

@@ -107,32 +107,56 @@ def geometry_metrics(pred, gt, thresholds_mm=DEFAULT_THRESHOLDS_MM, n_samples: i
     if not thresholds or not all(math.isfinite(t) and t > 0 for t in thresholds):
         raise BftaichiError(f"thresholds_mm must be positive finite numbers, got {thresholds_mm!r}")
 
-    n_pred_faces = int(len(pred.faces))
-    distances = surface_distances(pred, gt, n_samples, seed)
-    d_pg, d_gp = distances if distances is not None else (None, None)
+    return metrics_from_distances(surface_distances(pred, gt, n_samples, seed), thresholds,
+                                  int(len(pred.faces)))
 
+
+def metrics_from_distances(distances, thresholds_mm, n_pred_faces: int) -> dict:
+    """:func:`geometry_metrics` from the distances of :func:`surface_distances` (None: an
+    empty prediction), for callers that keep the distances (the run's plots)."""
     out: dict = {}
-    if d_pg is None:
+    if distances is None:
         out["chamfer_l2"] = math.inf
         out["accuracy_m"] = math.inf
         out["completeness_m"] = math.inf
     else:
+        d_pg, d_gp = distances
         out["chamfer_l2"] = float(np.mean(d_pg ** 2) + np.mean(d_gp ** 2))
         out["accuracy_m"] = float(np.mean(d_pg))
         out["completeness_m"] = float(np.mean(d_gp))
-    for t_mm in thresholds:
-        if d_pg is None:
-            precision = recall = 0.0
-        else:
-            t = t_mm / 1000.0
-            precision = float(np.mean(d_pg < t))
-            recall = float(np.mean(d_gp < t))
-        fscore = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
-        out[_threshold_key("precision", t_mm)] = precision
-        out[_threshold_key("recall", t_mm)] = recall
-        out[_threshold_key("fscore", t_mm)] = fscore
-    out["n_pred_faces"] = n_pred_faces
+    thresholds = [float(t) for t in thresholds_mm]
+    if distances is None:
+        zeros = np.zeros(len(thresholds))
+        curves = {"precision": zeros, "recall": zeros, "fscore": zeros}
+    else:
+        curves = threshold_curves(*distances, thresholds)
+    for k, t_mm in enumerate(thresholds):
+        for kind in ("precision", "recall", "fscore"):
+            out[_threshold_key(kind, t_mm)] = float(curves[kind][k])
+    out["n_pred_faces"] = int(n_pred_faces)
     return out
+
+
+def threshold_curves(d_pg: np.ndarray, d_gp: np.ndarray, thresholds_mm) -> dict:
+    """Precision, recall and F-score at each threshold, from the two distance arrays of
+    :func:`surface_distances` (metres): ``precision(t) = frac(d_pg < t)``, ``recall(t) =
+    frac(d_gp < t)``, ``F = 2 P R / (P + R)`` (0 when both are 0), ``t = t_mm / 1000``.
+
+    Returns ``{"threshold_mm", "precision", "recall", "fscore"}``, float64 arrays of the
+    thresholds' length (non-decreasing in the threshold for ascending thresholds).
+    """
+    d_pg = np.sort(np.asarray(d_pg, np.float64).ravel())
+    d_gp = np.sort(np.asarray(d_gp, np.float64).ravel())
+    t_mm = np.asarray(thresholds_mm, np.float64).ravel()
+    if len(d_pg) == 0 or len(d_gp) == 0:
+        raise BftaichiError("threshold_curves needs non-empty distance arrays")
+    t = t_mm / 1000.0
+    # searchsorted(..., "left") counts the distances strictly below t: the count of d < t.
+    precision = np.searchsorted(d_pg, t, side="left") / len(d_pg)
+    recall = np.searchsorted(d_gp, t, side="left") / len(d_gp)
+    total = precision + recall
+    fscore = np.divide(2.0 * precision * recall, total, out=np.zeros_like(total), where=total > 0)
+    return {"threshold_mm": t_mm, "precision": precision, "recall": recall, "fscore": fscore}
 
 
 def surface_distances(pred, gt, n_samples: int = 200_000,

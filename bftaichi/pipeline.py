@@ -25,7 +25,7 @@ from .errors import ConfigError, DataError, NoSurfaceError
 from .fusion import TSDFVolume
 from .io import prepare_out_dir, write_json, write_mesh_ply, write_npz
 
-__all__ = ["open_frames", "run", "load_gt_mesh", "band_uncertainty"]
+__all__ = ["open_frames", "run", "load_gt_mesh", "band_uncertainty", "near_surface_voxels"]
 
 
 def open_frames(cfg: Config):
@@ -130,13 +130,12 @@ class _FrameReader:
                 yield frame
 
 
-def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict | None:
-    """Calibration of the posterior against the ground-truth surface (DESIGN.md section 6):
-    :func:`bftaichi.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
-    true signed distance (:func:`bftaichi.metrics.surface_sdf`, sampled every voxel / 4) over
-    the observed band voxels (bootstrap weight > 0) within ``near_voxels`` voxels of the true
-    surface. None when fewer than 2 voxels qualify."""
-    from .metrics import surface_sdf, uncertainty_metrics
+def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0):
+    """``(mean, sigma, phi)`` of the observed band voxels (bootstrap weight > 0) within
+    ``near_voxels`` voxels of the ground-truth surface, ``phi`` their true signed distance
+    (:func:`bftaichi.metrics.surface_sdf`, sampled every voxel / 4); None when fewer than 2
+    voxels qualify."""
+    from .metrics import surface_sdf
 
     vs = post.voxel_size
     centres = (post.ijk.astype(np.float64) + 0.5) * vs
@@ -144,7 +143,20 @@ def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict 
     near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
     if np.count_nonzero(near) < 2:
         return None
-    out = uncertainty_metrics(post.mean[near], post.sigma[near], phi[near])
+    return post.mean[near], post.sigma[near], phi[near]
+
+
+def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict | None:
+    """Calibration of the posterior against the ground-truth surface (DESIGN.md section 6):
+    :func:`bftaichi.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
+    true signed distance over :func:`near_surface_voxels`. None when fewer than 2 voxels
+    qualify."""
+    from .metrics import uncertainty_metrics
+
+    near = near_surface_voxels(post, gt, near_voxels, seed)
+    if near is None:
+        return None
+    out = uncertainty_metrics(*near)
     out["near_voxels"] = near_voxels
     return out
 
@@ -208,18 +220,20 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         with timer("mesh"):
             post_mesh = post.extract_mesh()
     timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
-    metrics = {}
+    metrics, distances = {}, {}
     uncertainty = None
     if gt is not None:
-        from .metrics import geometry_metrics
+        from .metrics import metrics_from_distances, surface_distances
 
+        e = cfg.eval
         with timer("metrics"):
-            metrics["tsdf_mesh.ply"] = geometry_metrics(
-                mesh, gt, cfg.eval.thresholds_mm, cfg.eval.n_samples, cfg.eval.seed)
-            if post_mesh is not None:
-                metrics["mesh.ply"] = geometry_metrics(
-                    post_mesh, gt, cfg.eval.thresholds_mm, cfg.eval.n_samples, cfg.eval.seed)
-                uncertainty = band_uncertainty(post, gt, cfg.eval.near_voxels, cfg.eval.seed)
+            for name, m in (("tsdf_mesh.ply", mesh), ("mesh.ply", post_mesh)):
+                if m is not None:
+                    distances[name] = surface_distances(m, gt, e.n_samples, e.seed)
+                    metrics[name] = metrics_from_distances(distances[name], e.thresholds_mm,
+                                                           len(m.faces))
+            if post is not None:
+                uncertainty = band_uncertainty(post, gt, e.near_voxels, e.seed)
     with timer("write"):
         colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None
         write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors)
@@ -275,12 +289,19 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         report["seconds"]["nbv"] = timer.seconds["nbv"]
         report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
     write_json(out / "report.json", report)
+    if cfg.run.plots:
+        from .plots import write_run_plots
+
+        with timer("plots"):
+            write_run_plots(report, out, post=post, gt=gt, distances=distances)
+        report["seconds"]["plots"] = timer.seconds["plots"]
     if cfg.run.preview:
         from .viz import write_preview
 
         with timer("preview"):
             write_preview(out)
         report["seconds"]["preview"] = timer.seconds["preview"]
+    if cfg.run.plots or cfg.run.preview:
         report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
         write_json(out / "report.json", report)
     return report

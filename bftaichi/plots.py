@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from .errors import BftaichiError
+from .metrics import threshold_curves
 
-__all__ = ["write_run_plots", "threshold_curves", "curve_thresholds_mm", "band_errors",
+__all__ = ["write_run_plots", "curve_thresholds_mm", "band_errors",
            "coverage_curve", "save_png"]
 
 #: The run's meshes, in plotting order, with their legend labels.
@@ -52,46 +53,17 @@ def curve_thresholds_mm(voxel_size_m: float, extra_mm=(), n: int = 40) -> np.nda
     return np.unique(np.concatenate([grid, np.asarray(extra_mm, np.float64)]))
 
 
-def threshold_curves(d_pg: np.ndarray, d_gp: np.ndarray, thresholds_mm) -> dict:
-    """Precision, recall and F-score at each threshold, from the two distance arrays of
-    :func:`bftaichi.metrics.surface_distances` (metres): ``precision(t) = frac(d_pg < t)``,
-    ``recall(t) = frac(d_gp < t)``, ``F = 2 P R / (P + R)`` (0 when both are 0), with the
-    threshold converted as :func:`bftaichi.metrics.geometry_metrics` does (``t_mm / 1000``), so
-    at the same thresholds the values are identical to its.
-
-    Returns ``{"threshold_mm", "precision", "recall", "fscore"}``, float64 arrays of the
-    thresholds' length (non-decreasing in the threshold for ascending thresholds).
-    """
-    d_pg = np.sort(np.asarray(d_pg, np.float64).ravel())
-    d_gp = np.sort(np.asarray(d_gp, np.float64).ravel())
-    t_mm = np.asarray(thresholds_mm, np.float64).ravel()
-    if len(d_pg) == 0 or len(d_gp) == 0:
-        raise BftaichiError("threshold_curves needs non-empty distance arrays")
-    t = t_mm / 1000.0
-    # searchsorted(..., "left") counts the distances strictly below t: the count of d < t.
-    precision = np.searchsorted(d_pg, t, side="left") / len(d_pg)
-    recall = np.searchsorted(d_gp, t, side="left") / len(d_gp)
-    total = precision + recall
-    fscore = np.divide(2.0 * precision * recall, total, out=np.zeros_like(total), where=total > 0)
-    return {"threshold_mm": t_mm, "precision": precision, "recall": recall, "fscore": fscore}
-
-
 def band_errors(post, gt, near_voxels: float = 1.0, seed: int = 0):
-    """The (error, sigma) pairs that :func:`bftaichi.pipeline.band_uncertainty` judges: observed
-    band voxels (bootstrap weight > 0) within ``near_voxels`` voxels of the true surface, with
-    ``error = post.mean - phi`` (phi: :func:`bftaichi.metrics.surface_sdf` sampled every voxel /
-    4, same seed). Returns two float64 arrays in metres, or None when fewer than 2 voxels
-    qualify. (band_uncertainty makes the same selection itself: change both together.)"""
-    from .metrics import surface_sdf
+    """The (error, sigma) pairs that :func:`bftaichi.pipeline.band_uncertainty` judges (the
+    voxels of :func:`bftaichi.pipeline.near_surface_voxels`), ``error = mean - phi``, float64
+    metres; None when fewer than 2 voxels qualify."""
+    from .pipeline import near_surface_voxels
 
-    vs = post.voxel_size
-    centres = (post.ijk.astype(np.float64) + 0.5) * vs
-    phi, valid = surface_sdf(gt, centres, spacing_m=vs / 4, seed=seed)
-    near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
-    if np.count_nonzero(near) < 2:
+    near = near_surface_voxels(post, gt, near_voxels, seed)
+    if near is None:
         return None
-    return (post.mean[near].astype(np.float64) - phi[near],
-            post.sigma[near].astype(np.float64))
+    mean, sigma, phi = near
+    return mean.astype(np.float64) - phi, sigma.astype(np.float64)
 
 
 def coverage_curve(error: np.ndarray, sigma: np.ndarray, k: np.ndarray):
@@ -257,7 +229,8 @@ def _plot_pcg_residual(solver: dict, report: dict, path: Path) -> Path:
     return save_png(fig, path)
 
 
-def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None) -> list[Path]:
+def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None,
+                    distances: dict | None = None) -> list[Path]:
     """Write the diagnostic PNGs of the run in ``out_dir`` into ``out_dir / "plots"``; return
     their paths, in the order of the module's list (plots whose inputs are absent are skipped).
 
@@ -269,6 +242,8 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
             loaded from ``band.npz`` when the run solved one. Ignored for a tsdf_only run.
         gt: ground-truth ``trimesh.Trimesh`` (metres, world frame), for the precision / recall,
             F-score and calibration plots; None skips them.
+        distances: ``{mesh name: surface_distances(...)}`` the run already computed for its
+            metrics (same ``eval.n_samples`` and seed); default: computed here.
 
     Raises:
         BftaichiError naming the missing files when ``out_dir`` does not hold the run, or when
@@ -297,10 +272,11 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
         thresholds = curve_thresholds_mm(report["tsdf"]["voxel_size_m"], ev["thresholds_mm"])
         curves = {}
         for name in names:
-            distances = surface_distances(load_mesh(out / name), gt, int(ev["n_samples"]),
-                                          int(ev["seed"]))
-            if distances is not None:
-                curves[name] = threshold_curves(*distances, thresholds)
+            d = (distances[name] if distances and name in distances else
+                 surface_distances(load_mesh(out / name), gt, int(ev["n_samples"]),
+                                   int(ev["seed"])))
+            if d is not None:
+                curves[name] = threshold_curves(*d, thresholds)
         if curves:
             written.append(_plot_precision_recall(curves, report, plots / "precision_recall.png"))
             written.append(_plot_fscore(curves, report, plots / "fscore.png"))

@@ -8,13 +8,14 @@ import pytest
 
 #: ``--set`` overrides that shrink the built-in tabletop scene to a few-second run: 64x48 images
 #: (the Kinect intrinsics of the 320x240 default scaled by 1/5), 6 views, 3 cm voxels with a
-#: 6 cm observation truncation, and 5000 metric samples per surface.
+#: 6 cm observation truncation, and 5000 metric samples per surface; no plots.
 TINY_SCENE_SETS = (
     "synthetic.width=64", "synthetic.height=48",
     "synthetic.fx=52.5", "synthetic.fy=52.5", "synthetic.cx=31.5", "synthetic.cy=23.5",
     "synthetic.n_views=6",
     "tsdf.voxel_size_m=0.03", "tsdf.trunc_m=0.06",
     "eval.n_samples=5000",
+    "run.plots=false",  # tests/test_plots.py covers them
 )
 
 

@@ -22,7 +22,13 @@ def _tiny_run(tmp_path_factory, name, extra=()):
 
 @pytest.fixture(scope="module")
 def full_run(tmp_path_factory):
-    return _tiny_run(tmp_path_factory, "full")
+    return _tiny_run(tmp_path_factory, "full", ["run.plots=true"])
+
+
+def test_a_run_writes_its_plots_itself(full_run):
+    report, out, _ = full_run
+    assert sorted(p.name for p in (out / "plots").iterdir()) == sorted(ALL_PLOTS)
+    assert report["seconds"]["plots"] > 0
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +83,8 @@ def test_tsdf_only_run_writes_only_the_tsdf_curves(tmp_path_factory):
 
 
 def test_curves_are_monotone_and_match_the_report_exactly(full_run):
-    from bftaichi.metrics import load_mesh, surface_distances
-    from bftaichi.plots import curve_thresholds_mm, threshold_curves
+    from bftaichi.metrics import load_mesh, surface_distances, threshold_curves
+    from bftaichi.plots import curve_thresholds_mm
 
     report, out, gt = full_run
     ev = report["config"]["eval"]
@@ -138,19 +144,20 @@ def test_not_a_run_folder_is_named(full_run, tmp_path):
         write_run_plots({"scene": "x"}, tmp_path)
 
 
-def test_plots_gallery_copies_the_pngs_named_by_scene(tmp_path):
+def test_gallery_copies_the_pngs_named_by_scene(tmp_path):
     import subprocess
     import sys
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
     sets = [a for s in TINY_SCENE_SETS for a in ("--set", s)]
-    proc = subprocess.run([sys.executable, str(root / "tools" / "plots_gallery.py"),
-                           "scenes/default.toml", *sets, "--out", str(tmp_path / "run"),
-                           "--docs", str(tmp_path / "docs")],
+    proc = subprocess.run([sys.executable, str(root / "tools" / "gallery.py"),
+                           "scenes/default.toml", *sets, "--set", "nbv.n_candidates=6",
+                           "--out", str(tmp_path / "run"), "--docs", str(tmp_path / "docs"),
+                           "--no-screenshot"],
                           capture_output=True, text=True, timeout=300, cwd=root)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert sorted(p.name for p in (tmp_path / "docs").iterdir()) == sorted(
         f"default_{name}" for name in ALL_PLOTS)
     assert (tmp_path / "run" / "plots" / "calibration.png").is_file()
-    assert "default: run" in proc.stdout
+    assert "default: run" in proc.stdout and "preview.html" in proc.stdout
