@@ -24,6 +24,9 @@ kernels/observe.py (``c0 = floor(x / vs - 0.5)``).
    them, ``z = z_k + dz mu_k / (mu_k - mu_(k+1))`` (:func:`_zero_crossing`); 0 if there is none.
    A negative-to-positive pair (a back face, or a camera starting inside) never counts, and an
    invalid sample breaks the pair: no surface is guessed across unobserved cells.
+4. With a variance field (``var``): the depth's standard deviation ``sigma_z = sqrt(s) /
+   max(slope, slope_min)``, ``s`` the trilinear variance interpolated to the crossing like the
+   depth, ``slope = (mu_k - mu_(k+1)) / dz`` the mean's change per metre of camera depth there.
 
 *Empty-space skipping*, exact: samples that cannot be valid are not visited, and the samples
 never leave the lattice ``z_k``, so the result equals that of a march of single steps (tested
@@ -121,22 +124,26 @@ def _clip_to_box(o, m, lo, hi, z_in: ti.f64, z_out: ti.f64):
 # -- ray casting ------------------------------------------------------------------------------
 
 @ti.func
-def _sdf_sample(block_table: ti.template(), mean: ti.template(), observed: ti.template(), g,
-                c0, b, rows):
-    """``(mu, valid)`` at grid point g of cell c0 = floor(g): the trilinear mean
-    ``sum_c a_c(g - c0) mean[corner c]`` (float64, metres) and 1 if all 8 corners are observed
-    band voxels, else valid 0. ``b = c0 // 8``; ``rows`` (8,) holds the table rows of blocks
-    ``b + corner(s)`` (-1: not in the band), at least those the cell reaches."""
+def _sdf_sample(block_table: ti.template(), mean: ti.template(), observed: ti.template(),
+                var: ti.template(), with_var: ti.template(), g, c0, b, rows):
+    """``(mu, s, valid)`` at grid point g of cell c0 = floor(g): the trilinear mean
+    ``sum_c a_c(g - c0) mean[corner c]`` (float64, metres), the same interpolation of ``var``
+    (``with_var``; else 0) and 1 if all 8 corners are observed band voxels, else valid 0.
+    ``b = c0 // 8``; ``rows`` (8,) holds the table rows of blocks ``b + corner(s)`` (-1: not
+    in the band), at least those the cell reaches."""
     idx = _cell_corners(block_table, c0, b, rows)
     valid = ti.cast(idx[7] >= 0, ti.i32)
     mu = ti.cast(0.0, ti.f64)
+    s = ti.cast(0.0, ti.f64)
     if valid:
         a = _trilinear(g - ti.cast(c0, ti.f64))
         for c in ti.static(range(8)):
             if observed[idx[c]] == 0:
                 valid = 0
             mu += a[c] * ti.cast(mean[idx[c]], ti.f64)
-    return mu, valid
+            if ti.static(with_var):
+                s += a[c] * ti.cast(var[idx[c]], ti.f64)
+    return mu, s, valid
 
 
 @ti.func
@@ -165,10 +172,14 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
              mean: ti.types.ndarray(dtype=ti.f32, ndim=1),
              observed: ti.types.ndarray(dtype=ti.u8, ndim=1),
              stride: ti.i32,
-             depth: ti.types.ndarray(dtype=ti.f32, ndim=2)):
+             depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+             var: ti.types.ndarray(dtype=ti.f32, ndim=1),
+             sigma: ti.types.ndarray(dtype=ti.f32, ndim=2), slope_min: ti.f64,
+             with_var: ti.template()):
     """Predicted depth (camera z, metres) of every ``stride``-th pixel into ``depth`` (H, W),
-    0 where the ray finds no crossing (module docstring, steps 1-3). One thread per pixel.
-    Deterministic (pure reads, one store per pixel)."""
+    0 where the ray finds no crossing (module docstring, steps 1-3); with ``with_var``, its
+    standard deviation into ``sigma`` (step 4). One thread per pixel. Deterministic (pure
+    reads, one store per pixel and image)."""
     H, W = depth.shape[0], depth.shape[1]
     o = _ray_origin(prm)
     z_min, z_max = prm[P_ZMIN], prm[P_ZMAX]
@@ -187,7 +198,9 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
         cached = ti.Vector([1 << 30, 1 << 30, 1 << 30])  # no block has this coordinate
         rows = ti.Vector([-1, -1, -1, -1, -1, -1, -1, -1])
         prev_valid, prev_mu, prev_z = 0, ti.cast(0.0, ti.f64), ti.cast(0.0, ti.f64)
+        prev_s = ti.cast(0.0, ti.f64)
         hit = ti.cast(0.0, ti.f64)
+        hit_sigma = ti.cast(0.0, ti.f64)
         k = k0
         while k < k1:
             z = z_min + ti.cast(k, ti.f64) * dz
@@ -212,13 +225,23 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                     if rows[s] == _UNKNOWN and (cs <= edge).all():
                         rows[s] = _block_row(block_keys, b[0] + cs[0], b[1] + cs[1],
                                              b[2] + cs[2])
-                mu, valid = _sdf_sample(block_table, mean, observed, g, c0, b, rows)
+                mu, s, valid = _sdf_sample(block_table, mean, observed, var, with_var, g, c0, b,
+                                           rows)
                 if valid and prev_valid and prev_mu > 0 and mu <= 0:
                     hit = _zero_crossing(prev_z, prev_mu, z, mu)
+                    if ti.static(with_var):
+                        # sigma_z = sigma_mu / (d mu / d z): the variance at the crossing (the
+                        # same linear interpolation), over the mean's slope along the ray
+                        t = prev_mu / (prev_mu - mu)
+                        s_hit = ti.max(prev_s + t * (s - prev_s), 0.0)
+                        slope = ti.max((prev_mu - mu) / dz, slope_min)
+                        hit_sigma = ti.sqrt(s_hit) / slope
                     break
-                prev_valid, prev_mu, prev_z = valid, mu, z
+                prev_valid, prev_mu, prev_z, prev_s = valid, mu, z, s
                 k += 1
         depth[v, u] = ti.cast(hit, ti.f32)
+        if ti.static(with_var):
+            sigma[v, u] = ti.cast(hit_sigma, ti.f32)
 
 
 # -- coverage grid ----------------------------------------------------------------------------
@@ -401,7 +424,8 @@ def _band_box(block_keys: np.ndarray) -> np.ndarray:
 def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndarray,
                   observed: np.ndarray, voxel_size: float, K: np.ndarray, T_W_C: np.ndarray,
                   width: int, height: int, depth_min_m: float, depth_max_m: float,
-                  step_voxels: float = 0.5, stride: int = 1) -> np.ndarray:
+                  step_voxels: float = 0.5, stride: int = 1, var: np.ndarray | None = None,
+                  slope_min: float = 0.3):
     """Predicted depth image of the surface ``mean = 0`` seen by a camera (module docstring).
 
     Args:
@@ -419,10 +443,16 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
             (about a voxel long), so half-voxel steps keep the error of the linear crossing
             small and put at least 4 samples across a band 2 voxels thick.
         stride: cast every ``stride``-th pixel in u and v (u % stride == v % stride == 0).
+        var: optional (N,) float posterior variance of the SDF, metres^2: also return the
+            standard deviation of each predicted depth, ``sigma_z = sqrt(var at the crossing)
+            / max(d mu / d z, slope_min)`` (the SDF's uncertainty turned into depth along the
+            ray by the mean's slope there: 1 head-on, smaller at grazing angles).
+        slope_min: floor of that slope (the observation model's ``cos_min``).
 
     Returns:
         (height, width) float32 camera depth (z_C) of the first front-facing zero crossing,
-        metres; 0 where there is none and at the pixels skipped by ``stride``.
+        metres; 0 where there is none and at the pixels skipped by ``stride``. With ``var``:
+        ``(depth, sigma_z)``, sigma_z (height, width) float32 metres (0 where depth is 0).
 
     Raises ValueError/TypeError naming the argument. One kernel launch, deterministic.
     """
@@ -467,11 +497,20 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
         raise ValueError(f"depth_max_m = {z_max}: the rays reach beyond {G_MAX:.0f} voxels of "
                          "the origin (the band index range)")
     depth = np.zeros((height, width), np.float32)
+    with_var = var is not None
+    if with_var:
+        var = np.asarray(var)
+        if var.shape != mean.shape or not np.isfinite(var).all():
+            raise ValueError(f"var must be a finite (N,) array like mean, got {var.shape}")
+        slope_min = _positive("slope_min", slope_min)
+    sigma = np.zeros((height, width) if with_var else (1, 1), np.float32)
+    var32 = np.ascontiguousarray(var if with_var else np.zeros(1), np.float32)
     if len(keys):
         _raycast(prm, np.ascontiguousarray(keys), np.ascontiguousarray(table, np.int32),
                  np.ascontiguousarray(mean, np.float32),
-                 np.ascontiguousarray(observed, np.uint8), stride, depth)
-    return depth
+                 np.ascontiguousarray(observed, np.uint8), stride, depth, var32, sigma,
+                 float(slope_min), with_var)
+    return (depth, sigma) if with_var else depth
 
 
 class CoverageGrid:

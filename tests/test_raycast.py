@@ -141,6 +141,27 @@ def test_tilted_plane_depth_at_two_voxel_sizes(voxel):
     assert np.abs(depth - exact)[inside].max() < 0.01 * voxel
 
 
+def test_depth_sigma_is_the_sdf_sigma_over_the_slope_along_the_ray():
+    """Constant SDF variance s on a plane: sigma_z = sqrt(s) / (n . d), d the pixel ray with
+    unit camera-z component (1 head-on), floored by slope_min at grazing angles."""
+    voxel = 0.02
+    n = np.array([0.0, 0.0, 1.0])
+    band = Band(lambda x: x @ n, voxel, 0.4, keep=lambda x: np.abs(x[:, :2]).max(axis=-1) < 0.4)
+    var = np.full(len(band.mean), (0.003) ** 2, np.float32)
+    w, h = 64, 48
+    K = intrinsics(w, h, 60.0)
+    for eye, slope_min in (((0.0, 0.001, 1.0), 0.3), ((0.9, 0.0, 0.5), 0.3), ((0.9, 0.0, 0.5), 0.9)):
+        T = look_at(eye, (0.0, 0.0, 0.0))
+        depth, sigma = band.cast(K, T, w, h, var=var, slope_min=slope_min)
+        hit = depth > 0
+        assert hit.sum() > 100 and (sigma[~hit] == 0).all()
+        slope = np.abs(pixel_rays_W(K, T, w, h) @ n)
+        expected = 0.003 / np.maximum(slope, slope_min)
+        np.testing.assert_allclose(sigma[hit], expected[hit], rtol=1e-3)
+    # without var: the depth alone, identical
+    np.testing.assert_array_equal(band.cast(K, T, w, h), depth)
+
+
 def test_unobserved_patch_gives_no_depth(sphere):
     full = sphere.cast(K_SPHERE, T_SPHERE, W, H)
     centre = R_SPHERE * T_SPHERE[:3, 3]  # surface point facing the camera
