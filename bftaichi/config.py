@@ -75,7 +75,9 @@ class SceneConfig:
     """Dataset folder for ``source = "dataset"``; relative paths are relative to the scene file."""
 
     format: str = "auto"
-    """Dataset layout: ``auto`` (detect), ``7scenes`` or ``bfsdf`` (DESIGN.md section 5)."""
+    """Dataset layout: ``auto`` (detect), ``7scenes`` (also 3DMatch and ``seq-XX/`` folders),
+    ``bfsdf``, ``tum``, ``replica`` (NICE-SLAM export), ``scannet`` (SensReader export), ``co3d``,
+    ``redwood`` (Open3D ``.log``) or ``folder`` (generic); see :mod:`bftaichi.datasets`."""
 
     frames: str = ""
     """Python-style slice of the frames to use, e.g. ``"0:100:2"``; empty = all frames."""
@@ -91,11 +93,24 @@ class SceneConfig:
     """Depth above this (metres) is invalid and dropped per pixel. 6 m keeps Kinect-class sensors'
     far, noisy returns out of the map."""
 
+    depth_scale: float = 0.0
+    """Stored depth units per metre; 0 = the format's own (1000 for millimetre PNGs, 5000 for
+    ``tum``, 6553.5 for ``replica``, 1 for ``.npy`` depth of the ``folder`` format)."""
+
+    pose_convention: str = "T_W_C"
+    """What the ``folder`` format's pose files hold: ``T_W_C`` (camera-to-world) or ``T_C_W``
+    (world-to-camera, inverted on load). The other formats have a fixed convention."""
+
     def check(self) -> None:
         _check_choice("scene.source", self.source, ("synthetic", "dataset"))
-        from .datasets import FORMATS
+        from .datasets import FORMATS, POSE_CONVENTIONS
 
         _check_choice("scene.format", self.format, ("auto", *FORMATS))
+        _check_range("scene.depth_scale", self.depth_scale, 0.0)
+        _check_choice("scene.pose_convention", self.pose_convention, POSE_CONVENTIONS)
+        if self.pose_convention != "T_W_C" and self.format not in ("auto", "folder"):
+            raise ConfigError(f"scene.pose_convention = {self.pose_convention!r} applies to the folder "
+                              f"format only; scene.format = {self.format!r} has T_W_C poses")
         _check_range("scene.depth_min_m", self.depth_min_m, 0.0)
         _check_range("scene.depth_max_m", self.depth_max_m, self.depth_min_m, lo_open=True)
         if self.source == "dataset" and not self.data:
@@ -391,6 +406,11 @@ class PriorConfig:
     """Anchored voxels: ``none``, ``boundary`` (the band boundary, as in the paper) or ``all``
     (every observed voxel, weighted by its TSDF weight)."""
 
+    outer: float = 0.0
+    """Anchor strength per voxel^2 for the *outer band*: observed voxels with ``|tsdf| >
+    tsdf.trunc_m``, which no observation sample reaches (samples lie within ``+-tau`` of the
+    measured surface), pulled to their bootstrap value (0 = off)."""
+
     eps: float = 1e-4
     """``eps * I`` per voxel^2 keeps Q positive definite where nothing else does."""
 
@@ -412,6 +432,7 @@ class PriorConfig:
         _check_range("prior.curvature", self.curvature, 0.0)
         _check_range("prior.lam", self.lam, 0.0)
         _check_range("prior.lam_b", self.lam_b, 0.0)
+        _check_range("prior.outer", self.outer, 0.0)
         _check_choice("prior.anchors", self.anchors, ("none", "boundary", "all"))
         _check_range("prior.eps", self.eps, 0.0, lo_open=True)
 

@@ -162,8 +162,12 @@ def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict 
 
 
 def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
-        progress: bool = True) -> dict:
+        progress: bool = True, frames=None) -> dict:
     """Run the pipeline of ``cfg`` and write its outputs into ``out_dir``; return the report.
+
+    ``frames``: a frame source to use instead of the one ``cfg.scene`` describes (a dataset
+    or a subset of one, with ``len`` and indexing), e.g. the fused half of a held-out-view
+    evaluation.
 
     Raises BftaichiError subclasses for bad input (naming the file, frame or key) and
     NoSurfaceError when no voxel was observed (then no mesh is written).
@@ -175,7 +179,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     timer = _Timer()
     t_start = time.perf_counter()
     with timer("load"):  # before touching the output folder: bad data leaves nothing behind
-        frames = open_frames(cfg)
+        frames = open_frames(cfg) if frames is None else frames
         gt = load_gt_mesh(cfg, frames)
     out = prepare_out_dir(out_dir, overwrite=overwrite)
     with timer("init"):

@@ -153,6 +153,14 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_
     add_prior(S, b0, band["nbr"], band["tsdf"], band["weight"], lam=p.lam / vs ** 2,
               lam_b=p.lam_b / vs ** 2, eps=p.eps / vs ** 2, stencil=cfg.band.stencil,
               anchors=p.anchors)
+    if p.outer > 0:
+        # The outer band (observed voxels with |tsdf| beyond tau): no observation sample
+        # reaches them (samples lie within +-tau of the measured surface), so only the prior
+        # would set them, and between occluding edges it can bend them through zero (false
+        # surface in space the TSDF saw as free). Anchor them to the bootstrap.
+        outer = (band["weight"] > 0) & (np.abs(band["tsdf"]) > cfg.tsdf.trunc_m)
+        S[outer, 13] += np.float32(p.outer / vs ** 2)
+        b0[outer] += np.float32(p.outer / vs ** 2) * band["tsdf"][outer]
     far = None  # Q's entries at offsets +-2 (curvature prior only)
     if p.curvature > 0:
         far = add_curvature_prior(S, band["nbr"], lam2=p.curvature / vs ** 2)
