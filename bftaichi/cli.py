@@ -141,7 +141,8 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose):
 @cli.command()
 @click.argument("data_dir", type=click.Path(file_okay=False))
 @click.option("--format", "fmt", default="auto", show_default=True,
-              help="Dataset layout: auto, 7scenes or bfsdf.")
+              help="Dataset layout: auto, 7scenes, bfsdf, tum, replica, scannet, co3d, redwood, "
+              "folder.")
 @click.option("--voxel", type=float, default=0.01, show_default=True, help="Voxel size, metres.")
 @click.option("--trunc", type=float, default=None,
               help="Observation truncation tau, metres [default: 2 voxels]; the TSDF uses alpha*tau.")
@@ -149,14 +150,21 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose):
 @click.option("--depth-max", type=float, default=None, help="Ignore depth beyond this, metres.")
 @click.option("--gt", "gt_mesh", type=click.Path(dir_okay=False), default="auto",
               help="Ground-truth mesh for metrics [default: gt_mesh.ply in DATA_DIR if present].")
+@click.option("--depth-scale", type=float, default=None,
+              help="Stored depth units per metre [default: the format's own, e.g. 1000 for mm "
+              "PNG, 5000 for tum].")
+@click.option("--pose-convention", type=click.Choice(["T_W_C", "T_C_W"]), default=None,
+              help="What the folder format's pose files hold [default: T_W_C, camera-to-world].")
+@click.option("--rgb", is_flag=True, help="Integrate colour (where the format has it) and "
+              "write vertex colours into both meshes.")
 @click.option("--out", "-o", type=click.Path(file_okay=False), required=True, help="Output folder.")
 @click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Other overrides.")
 @click.option("--arch", type=ARCH, default=None, help="Taichi backend [default: cpu].")
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
-def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, out, sets, arch, overwrite, quiet,
-         verbose):
+def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, pose_convention,
+         rgb, out, sets, arch, overwrite, quiet, verbose):
     """Fuse recorded depth frames from DATA_DIR into a TSDF mesh.
 
     \b
@@ -166,8 +174,15 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, out, sets, arc
     from .config import load_config
     from .pipeline import run as run_pipeline
 
+    extra = []
+    if depth_scale is not None:
+        extra.append(f"scene.depth_scale={depth_scale}")
+    if pose_convention:
+        extra.append(f"scene.pose_convention={pose_convention}")
+    if rgb:
+        extra.append("tsdf.integrate_rgb=true")
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
-                                               gt_mesh) + _overrides(arch, sets))
+                                               gt_mesh) + extra + _overrides(arch, sets))
     run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(Path(out), verbose)

@@ -48,7 +48,8 @@ def open_frames(cfg: Config):
     frames = parse_slice(s.frames, "scene.frames") if s.frames else None
     return open_dataset(s.data, format=s.format, depth_min_m=s.depth_min_m,
                         depth_max_m=s.depth_max_m, frames=frames,
-                        load_rgb=cfg.tsdf.integrate_rgb)
+                        load_rgb=cfg.tsdf.integrate_rgb, depth_scale=s.depth_scale or None,
+                        pose_convention=s.pose_convention)
 
 
 class _SlicedSynthetic:
@@ -246,8 +247,18 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
             write_npz(out / "band.npz", ijk=voxels["ijk"], voxel_size=vs32, tsdf=voxels["tsdf"],
                       weight=voxels["weight"])
         else:
+            post_colors = None
+            if colors is not None and len(post_mesh.vertices):
+                from .meshing import sample_field
+
+                # the TSDF's per-voxel colour at the posterior surface (nearest observed voxels)
+                cols = [sample_field(voxels["ijk"], voxels["rgb"][:, c], voxels["weight"] > 0,
+                                     cfg.tsdf.voxel_size_m, post_mesh.vertices) for c in range(3)]
+                post_colors = np.clip(np.nan_to_num(np.stack(cols, axis=1)), 0, 255).astype(
+                    np.uint8)
             write_mesh_ply(out / "mesh.ply", post_mesh.vertices, post_mesh.faces,
-                           vertex_attrs={"sigma": post_mesh.vertex_attributes["sigma"]})
+                           vertex_attrs={"sigma": post_mesh.vertex_attributes["sigma"]},
+                           vertex_colors=post_colors)
             write_npz(out / "band.npz", ijk=post.ijk, voxel_size=vs32, mean=post.mean,
                       var=post.var, tsdf=post.tsdf, weight=post.weight)
         save_config(cfg, out / "config.toml")

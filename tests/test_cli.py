@@ -344,3 +344,20 @@ def test_run_summary_compact_verbose_and_quiet(tmp_path, capsys):
     assert "posterior seconds" in verbose and "preview.html" in verbose
     assert main(["run", "-q", "--out", str(tmp_path / "c"), *sets_args()]) == 0
     assert capsys.readouterr().out == ""
+
+
+REDKITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "rgbd" / "7scenes-redkitchen"
+
+
+@pytest.mark.skipif(not REDKITCHEN.is_dir(), reason="shared redkitchen frames not present")
+def test_fuse_rgb_colours_both_meshes(tmp_path):
+    import plyfile
+
+    out = tmp_path / "rgb"
+    assert main(["fuse", str(REDKITCHEN), "--voxel", "0.08", "--frames", "0:4", "--rgb", "-q",
+                 "--out", str(out), "--set", "run.plots=false", "--set", "run.preview=false"]) == 0
+    for name in ("mesh.ply", "tsdf_mesh.ply"):
+        v = plyfile.PlyData.read(out / name)["vertex"]
+        rgb = np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], axis=1)
+        assert len(rgb) > 100 and rgb.std(axis=0).min() > 5, name  # real colours, not a fill
+    assert "sigma" in plyfile.PlyData.read(out / "mesh.ply")["vertex"].data.dtype.names
