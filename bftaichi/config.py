@@ -361,6 +361,12 @@ class ObservationConfig:
     sigma_model_m: float = 0.001
     """Model error of a trilinear SDF within one voxel and of the normal estimate, metres."""
 
+    front: float = 1.0
+    """How far in front of the measured surface a pixel's samples reach, in units of the
+    observation truncation ``tau`` (>= 1; behind the surface they always reach ``tau``). With
+    ``tsdf.alpha``, the band reaches ``alpha tau`` in front: samples out to there observe the
+    free space the ray crossed, as the TSDF does, so the prior alone does not set those voxels."""
+
     count_once: str = "voxel"
     """How a pixel's samples, which share one depth error, split its information ``1/sigma^2``:
     ``pixel`` gives each of its n samples ``1/n`` (the pixel counts once in all); ``voxel``
@@ -373,6 +379,7 @@ class ObservationConfig:
     def check(self) -> None:
         _check_range("observation.stride", self.stride, 1, 64)
         _check_range("observation.spacing_voxels", self.spacing_voxels, 0.1, 10.0)
+        _check_range("observation.front", self.front, 1.0, 3.0)
         _check_range("observation.depth_a_m", self.depth_a_m, 0.0)
         _check_range("observation.depth_b", self.depth_b, 0.0)
         _check_range("observation.cos_min", self.cos_min, 0.01, 1.0)

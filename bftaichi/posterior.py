@@ -141,7 +141,8 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_
     observer = Observer(band["block_keys"], band["block_table"], n, vs, cfg.tsdf.trunc_m,
                         spacing_m=o.spacing_voxels * vs, depth_a_m=o.depth_a_m, depth_b=o.depth_b,
                         depth_z0_m=o.depth_z0_m, cos_min=o.cos_min, sigma_pose_m=o.sigma_pose_m,
-                        sigma_model_m=o.sigma_model_m, count_once=o.count_once)
+                        sigma_model_m=o.sigma_model_m, count_once=o.count_once,
+                        front_m=o.front * cfg.tsdf.trunc_m)
     for frame in (frame_iter(frames, "observe") if frame_iter else frames):
         observer.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=o.stride)
     S, h_data, obs_stats = observer.finalize()

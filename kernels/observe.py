@@ -251,7 +251,7 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                    prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                    block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
                    block_table: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                   stride: ti.i32, m: ti.i32,
+                   stride: ti.i32, m: ti.i32, mf: ti.i32,
                    S_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
                    h_acc: ti.types.ndarray(dtype=ti.i64, ndim=1),
                    counts: ti.types.ndarray(dtype=ti.i64, ndim=2),
@@ -267,10 +267,10 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     """One frame, parallel over strided pixel rows (module docstring, steps 1-5). Each pixel
     first counts its accepted samples, then (``to_rows`` False) adds them to ``S_acc``/``h_acc``
     with int64 atomics, or (``to_rows`` True) writes every sample to the ``row_*`` arrays at row
-    ``(pixel slot) * (2m + 1) + (j + m)``, pixel slot ``(v / stride) * ceil(W / stride) + u /
+    ``(pixel slot) * (mf + m + 1) + (j + mf)``, pixel slot ``(v / stride) * ceil(W / stride) + u /
     stride``, touching no accumulator. Per-row counters go to ``counts[v / stride]``;
-    ``scratch`` (rows, 2m + 1, 8) holds the corner indices of the pixel a row thread is on,
-    ``blocks`` (rows, 2m + 1, 11) each row's block cache per sample index (block, 8 rows).
+    ``scratch`` (rows, mf + m + 1, 8) holds the corner indices of the pixel a row thread is on,
+    ``blocks`` (rows, mf + m + 1, 11) each row's block cache per sample index (block, 8 rows).
 
     Determinism: integer atomics only; the accumulated values and the rows are bitwise
     reproducible."""
@@ -286,7 +286,7 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     for vs in range((H + stride - 1) // stride):
         v = vs * stride
         n_valid, n_used, n_acc_row, n_drop, n_sat, n_fb = 0, 0, 0, 0, 0, 0
-        for jj in range(2 * m + 1):
+        for jj in range(mf + m + 1):
             blocks[vs, jj, 0] = 1 << 30  # no block has this coordinate: empty cache
         for us in range(n_us):
             u = us * stride
@@ -306,24 +306,24 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                 # corner indices wait in this row's scratch); pass 1 adds the accepted samples
                 # (or writes rows) with w = 1 / (n_acc sigma^2).
                 n_acc = 0
-                for j in range(-m, m + 1):
+                for j in range(-mf, m + 1):
                     z = D + ti.cast(j, ti.f64) * spacing
                     if z > 0:
                         c0 = _floor_i32(o + z * m_ray)
                         b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
                         # block cache per sample index j: sample j of the next pixels in the
                         # row is mostly in the same block (8 voxels = many pixels)
-                        cached = ti.Vector([blocks[vs, j + m, t] for t in ti.static(range(3))])
+                        cached = ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])
                         if (b != cached).any():
                             rows = _block_rows(block_keys, b)
                             for t in ti.static(range(3)):
-                                blocks[vs, j + m, t] = b[t]
+                                blocks[vs, j + mf, t] = b[t]
                             for t in ti.static(range(8)):
-                                blocks[vs, j + m, 3 + t] = rows[t]
+                                blocks[vs, j + mf, 3 + t] = rows[t]
                         idx = _cell_corners(block_table, c0, b, ti.Vector(
-                            [blocks[vs, j + m, 3 + t] for t in ti.static(range(8))]))
+                            [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
                         for c in ti.static(range(8)):
-                            scratch[vs, j + m, c] = idx[c]
+                            scratch[vs, j + mf, c] = idx[c]
                         if idx[7] >= 0:
                             n_acc += 1
                         else:
@@ -331,7 +331,7 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                 if n_acc > 0 or to_rows:
                     w = inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64), prm[P_SHARE])
                     ws = w * scale
-                    for j in range(-m, m + 1):
+                    for j in range(-mf, m + 1):
                         delta = ti.cast(j, ti.f64) * spacing
                         z = D + delta
                         if z <= 0:
@@ -340,10 +340,10 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                         c0 = _floor_i32(g)
                         a = _trilinear(g - ti.cast(c0, ti.f64))
                         y = delta * n_dot_ray  # <n, x - p>, x - p = delta K^-1 (u, v, 1)
-                        idx = ti.Vector([scratch[vs, j + m, c] for c in ti.static(range(8))])
+                        idx = ti.Vector([scratch[vs, j + mf, c] for c in ti.static(range(8))])
                         accepted = idx[7] >= 0
                         if to_rows:
-                            r = (vs * n_us + us) * (2 * m + 1) + m + j
+                            r = (vs * n_us + us) * (mf + m + 1) + mf + j
                             row_status[r] = ti.select(accepted, ROW_ACCEPTED, ROW_DROPPED)
                             row_y[r] = y
                             row_w[r] = ti.select(accepted, w, 0.0)
@@ -477,6 +477,9 @@ class Observer:
             accepts (the fixed-point scale is sized for the largest weight).
         sigma_model_m: model noise (planar approximation, discretisation), metres.
         normal_radius_px: tangent offset r of the normal estimate, pixels (module docstring).
+        front_m: how far in front of the measured surface the samples reach, metres (>=
+            ``trunc_m``; default ``trunc_m``). Samples there observe ``y = <n, x - p>`` like
+            the others: the free space the ray crossed, as the TSDF sees it.
         normal_max_slope_deg: steepest surface inclination (from the image plane) whose
             neighbouring depths still count as one surface in the normal estimate, degrees.
 
@@ -490,7 +493,7 @@ class Observer:
                  depth_a_m: float = 0.0012, depth_b: float = 0.0019, depth_z0_m: float = 0.4,
                  cos_min: float = 0.3, sigma_pose_m: float = 0.0, sigma_model_m: float = 0.001,
                  normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0,
-                 count_once: str = "pixel"):
+                 count_once: str = "pixel", front_m: float | None = None):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
@@ -538,6 +541,11 @@ class Observer:
         self.normal_radius_px = int(normal_radius_px)
         self.normal_max_slope_deg = float(normal_max_slope_deg)
         self.m = sample_count(self.trunc_m, self.spacing_m) // 2
+        # samples in front of the surface reach front_m (default: tau, like those behind)
+        self.front_m = self.trunc_m if front_m is None else float(front_m)
+        if not (math.isfinite(self.front_m) and self.front_m >= self.trunc_m):
+            raise ValueError(f"Observer: front_m = {front_m} must be >= trunc_m = {self.trunc_m}")
+        self.mf = sample_count(self.front_m, self.spacing_m) // 2
         # scale = 2^FRACTION_BITS / w_max, rounded down to a power of two (exact multiplies)
         self.w_max = 1.0 / var_floor
         self.fixed_scale = 2.0 ** math.floor(FRACTION_BITS - math.log2(self.w_max))
@@ -597,7 +605,7 @@ class Observer:
     def _scratch(self, n_rows: int) -> tuple:
         """Per-row scratch arrays of the frame kernel (see _observe_frame), reused."""
         if self._scratch_buf is None or self._scratch_buf[0].shape[0] < n_rows:
-            n_s = 2 * self.m + 1
+            n_s = self.mf + self.m + 1
             self._scratch_buf = (np.empty((n_rows, n_s, 8), np.int32),
                                  np.empty((n_rows, n_s, 11), np.int32))
         return self._scratch_buf
@@ -624,7 +632,7 @@ class Observer:
         n_vs = (depth.shape[0] + stride - 1) // stride
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
         if self.n_voxels:
-            _observe_frame(depth, prm, self.block_keys, self.block_table, stride, self.m,
+            _observe_frame(depth, prm, self.block_keys, self.block_table, stride, self.m, self.mf,
                            self.S_acc, self.h_acc, counts, *self._scratch(n_vs),
                            *self._dummy_rows, 0)
         frame = counts.sum(axis=0)
@@ -648,13 +656,13 @@ class Observer:
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         H, W = depth.shape
         n_vs, n_us = (H + stride - 1) // stride, (W + stride - 1) // stride
-        n_s = 2 * self.m + 1
+        n_s = self.mf + self.m + 1
         R = n_vs * n_us * n_s
         rows = (np.full((R, 8), -1, np.int32), np.zeros((R, 8)), np.zeros(R), np.zeros(R),
                 np.zeros(R), np.zeros(R, np.int32))
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
         if self.n_voxels:
-            _observe_frame(depth, prm, self.block_keys, self.block_table, stride, self.m,
+            _observe_frame(depth, prm, self.block_keys, self.block_table, stride, self.m, self.mf,
                            self.S_acc, self.h_acc, counts, *self._scratch(n_vs), *rows, 1)
         idx, a, y, w, z, status = rows
         slot = np.arange(R) // n_s

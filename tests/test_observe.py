@@ -194,6 +194,30 @@ def test_plane_observations_are_signed_distances(box):
     assert n_checked > 300
 
 
+def test_front_samples_reach_front_m_in_front_only(box):
+    """front_m = 2 tau: a pixel's samples run from D - 2 tau to D + tau (camera depth), and
+    those in front still observe their signed distance to the face plane."""
+    band, frames = box
+    near, far = band.observer(), band.observer(front_m=2 * TRUNC)
+    frame = frames[0]
+    face, flat = box_faces(frame)
+    r_near = near.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+    r_far = far.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+    D = frame.depth_m.ravel()
+    dz_near = r_near["z"] - D[r_near["pixel"]]
+    dz_far = r_far["z"] - D[r_far["pixel"]]
+    assert dz_near.min() >= -TRUNC - 1e-9 and dz_near.max() <= TRUNC + 1e-9
+    assert dz_far.min() < -1.5 * TRUNC and dz_far.min() >= -2 * TRUNC - 1e-9
+    assert dz_far.max() <= TRUNC + 1e-9  # behind the surface: still tau
+    sel = flat.ravel()[r_far["pixel"]]
+    f = face.ravel()[r_far["pixel"][sel]]
+    x = sample_points(frame, r_far["pixel"][sel], r_far["z"][sel])
+    sdf = np.where(f % 2 == 1, 1.0, -1.0) * x[np.arange(len(f)), f // 2] - R_OBJ
+    np.testing.assert_allclose(r_far["y"][sel], sdf, atol=1e-6)
+    with pytest.raises(ValueError, match="front_m"):
+        band.observer(front_m=0.5 * TRUNC)
+
+
 def test_plane_normals_face_the_camera(box):
     """(c) Normals of flat box-face pixels are the face's outward normal (which faces the
     camera); every normal is a unit vector facing the camera; an isolated pixel falls back to
