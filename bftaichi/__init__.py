@@ -4,12 +4,16 @@ The public API is small::
 
     import bftaichi as bf
     bf.init("cpu")                                   # optional; done on first use
-    cfg = bf.load_config("scenes/bunny.toml")        # or bf.Config()
-    vol = bf.TSDFVolume(voxel_size_m=0.01, trunc_m=0.04)
-    for frame in bf.open_dataset("path/to/frames"):  # 7scenes / bfsdf layouts, lazily
-        vol.integrate(frame.depth_m, frame.K, frame.T_W_C)
-    mesh = vol.extract_mesh()                        # trimesh.Trimesh, world frame, metres
-    report = bf.run(cfg, "out/bunny")                # the whole pipeline, files on disk
+    recon = bf.Reconstructor(bf.Config.from_toml("scenes/bunny.toml"))   # or bf.Config()
+    for frame in bf.open_dataset("path/to/frames"):  # every supported layout, lazily
+        recon.integrate(frame.depth_m, frame.K, frame.T_W_C)
+    post = recon.solve()                             # bf.Posterior: mean, var, band, stats
+    mesh = post.extract_mesh()                       # trimesh.Trimesh, vertex attribute sigma
+    ranked = bf.nbv.rank(post, bf.nbv.candidates_around(post), recon.K, recon.image_size)
+    recon.save("out/")                               # mesh.ply, tsdf_mesh.ply, band.npz
+    report = bf.run(bf.load_config("scenes/bunny.toml"), "out/bunny")   # the whole pipeline
+
+``bf.TSDFVolume`` is the bootstrap alone; ``kernels`` holds the Taichi code for embedding.
 """
 
 import os as _os
@@ -26,6 +30,10 @@ from .errors import BftaichiError, ConfigError, DataError, NoSurfaceError  # noq
 from .frame import Frame  # noqa: E402
 from .fusion import TSDFVolume  # noqa: E402
 from .pipeline import run  # noqa: E402
+from .posterior import Posterior  # noqa: E402
+from .reconstructor import Reconstructor  # noqa: E402
+from . import nbv  # noqa: E402
 
-__all__ = ["init", "Config", "load_config", "open_dataset", "Frame", "TSDFVolume", "run",
+__all__ = ["init", "Config", "load_config", "open_dataset", "Frame", "TSDFVolume",
+           "Reconstructor", "Posterior", "nbv", "run",
            "BftaichiError", "ConfigError", "DataError", "NoSurfaceError", "__version__"]

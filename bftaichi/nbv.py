@@ -50,7 +50,7 @@ from .errors import ConfigError, DataError
 from .geometry import check_pose, look_at
 
 __all__ = ["sphere_candidates", "ring_candidates", "load_poses", "make_candidates",
-           "CoverageGrid", "region_of_interest", "Planner"]
+           "candidates_around", "rank", "CoverageGrid", "region_of_interest", "Planner", "plan"]
 
 
 # -- candidates --------------------------------------------------------------------------------
@@ -341,3 +341,35 @@ def rank_run(post, cfg: Config, frames, out_dir, progress=None) -> dict:
     result = plan(post, cfg, frames, first.K, (width, height), progress=progress)
     write_json(Path(out_dir) / "nbv.json", result)
     return result
+
+
+def candidates_around(post, n: int = 48, kind: str = "hemisphere", radius_scale: float = 3.0,
+                      min_elevation_deg: float = 10.0, max_elevation_deg: float = 80.0):
+    """``n`` candidate poses (n, 4, 4) looking at the centre of ``post``'s band from
+    ``radius_scale`` times its bounding radius: ``kind`` ``hemisphere`` / ``sphere``
+    (Fibonacci points between the elevations; ``sphere`` from -90 deg) or ``ring`` (at the
+    centre's height)."""
+    lo = post.ijk.min(axis=0) * post.voxel_size
+    hi = (post.ijk.max(axis=0) + 1) * post.voxel_size
+    centre, radius = 0.5 * (lo + hi), radius_scale * 0.5 * float(np.linalg.norm(hi - lo))
+    if kind == "ring":
+        return ring_candidates(centre, radius, n)
+    if kind not in ("sphere", "hemisphere"):
+        raise ConfigError(f"kind = {kind!r} is not one of hemisphere, sphere, ring")
+    lo_el = -90.0 if kind == "sphere" else min_elevation_deg
+    return sphere_candidates(centre, radius, n, lo_el, max_elevation_deg)
+
+
+def rank(post, poses, K, image_size, config: Config | None = None, frames=None) -> list[dict]:
+    """Rank candidate poses (n, 4, 4) for the posterior ``post`` with a camera ``K`` (3, 3)
+    of ``image_size`` (width, height): :meth:`Planner.rank`, best first. ``config`` gives
+    the observation model and NBV settings (default: the defaults); with ``frames`` (the fused
+    frames) unseen space is scored too (:class:`CoverageGrid`), else known surface only."""
+    cfg = config or Config()
+    coverage = None
+    if frames is not None:
+        lo, hi = region_of_interest(post.ijk, post.voxel_size, cfg.nbv.roi_scale)
+        coverage = coverage_grid(cfg, lo, hi, post.voxel_size)
+        for f in frames:
+            coverage.mark(f.depth_m, f.K, f.T_W_C, stride=cfg.observation.stride)
+    return Planner(post, cfg, K, image_size, coverage).rank(poses)

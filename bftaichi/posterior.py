@@ -76,6 +76,20 @@ class Posterior:
                    tsdf=data["tsdf"].astype(np.float32),
                    weight=data["weight"].astype(np.float32), core=data["weight"] > 0)
 
+    def save(self, out_dir) -> "Path":
+        """Write ``mesh.ply`` (:meth:`extract_mesh`, vertex ``sigma``) and ``band.npz`` (``ijk,
+        voxel_size, mean, var, tsdf, weight``) into ``out_dir`` (DESIGN.md section 4),
+        atomically; return the folder. :meth:`load` reads the band back."""
+        from .io import ensure_out_dir, write_mesh_ply, write_npz
+
+        out = ensure_out_dir(out_dir)
+        mesh = self.extract_mesh()
+        write_mesh_ply(out / "mesh.ply", mesh.vertices, mesh.faces,
+                       vertex_attrs={"sigma": mesh.vertex_attributes["sigma"]})
+        write_npz(out / "band.npz", ijk=self.ijk, voxel_size=np.float32(self.voxel_size),
+                  mean=self.mean, var=self.var, tsdf=self.tsdf, weight=self.weight)
+        return out
+
     @property
     def sigma(self) -> np.ndarray:
         """(N,) float32 posterior standard deviation, metres."""
