@@ -12,8 +12,10 @@ Modules, one per concern (DESIGN.md section 3):
     prior    -- GMRF membrane prior and anchors added into the stencil.
     pcg      -- matrix-free stencil Q·x, Jacobi PCG, batched probe variance.
     raycast  -- predicted depth of the posterior mean through the band; NBV coverage grid.
+    embed    -- SDFField: the band in Taichi fields with @ti.func sdf/grad/sigma for user kernels.
 """
 
+from .embed import SDFField
 from .tsdf import SparseTSDF
 
-__all__ = ["SparseTSDF"]
+__all__ = ["SDFField", "SparseTSDF"]
