@@ -116,7 +116,9 @@ def _print_summary(out: Path, verbose: bool = False) -> None:
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
-def run(scene, out, sets, arch, overwrite, quiet, verbose):
+@click.option("--strict", is_flag=True, help="Fail (and write no mesh) if the MAP solve does not "
+              "converge.")
+def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
     """Run a scene file end to end (the built-in tabletop scene if SCENE is omitted).
 
     Writes tsdf_mesh.ply, band.npz, report.json and config.toml into the output folder and
@@ -131,7 +133,7 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose):
     from .config import load_config
     from .pipeline import run as run_pipeline
 
-    cfg = load_config(scene, _overrides(arch, sets))
+    cfg = load_config(scene, _overrides(arch, sets) + (["run.strict=true"] if strict else []))
     out = Path(out or Path("out") / cfg.scene.name)
     run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
     if not quiet:
@@ -163,8 +165,10 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose):
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
+@click.option("--strict", is_flag=True, help="Fail (and write no mesh) if the MAP solve does not "
+              "converge.")
 def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, pose_convention,
-         rgb, out, sets, arch, overwrite, quiet, verbose):
+         rgb, out, sets, arch, overwrite, quiet, verbose, strict):
     """Fuse recorded depth frames from DATA_DIR into a TSDF mesh.
 
     \b
@@ -181,6 +185,8 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
         extra.append(f"scene.pose_convention={pose_convention}")
     if rgb:
         extra.append("tsdf.integrate_rgb=true")
+    if strict:
+        extra.append("run.strict=true")
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
                                                gt_mesh) + extra + _overrides(arch, sets))
     run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)

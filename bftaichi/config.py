@@ -589,6 +589,10 @@ class RunConfig:
     """``full`` (TSDF bootstrap + probabilistic posterior: tsdf_mesh.ply and mesh.ply with sigma)
     or ``tsdf_only`` (the bootstrap alone, e.g. as a fast baseline)."""
 
+    strict: bool = False
+    """Refuse to write ``mesh.ply`` when the MAP solve did not converge (an error, exit code 2).
+    Without it the mesh is written and ``report.json`` flags ``map_not_converged``."""
+
     plots: bool = True
     """Write diagnostic PNGs into ``plots/`` at the end of a run (``bftaichi.plots``:
     precision / recall and F-score against threshold, sigma histogram, calibration, PCG

@@ -20,8 +20,13 @@ __all__ = ["atomic_write_bytes", "write_json", "write_npz", "write_mesh_ply", "r
            "prepare_out_dir", "ensure_out_dir"]
 
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)  # read once: temp files are created 0600, outputs get the usual 0666 & ~umask
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temp file in the same folder + rename."""
+    """Write ``data`` to ``path`` via a temp file in the same folder + rename (permissions as
+    a plain ``open`` would give)."""
     path = Path(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -32,6 +37,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException as e:
         try:

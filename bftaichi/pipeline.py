@@ -21,7 +21,7 @@ import trimesh
 
 from . import __version__, backend
 from .config import Config, parse_slice, save_config
-from .errors import ConfigError, DataError, NoSurfaceError
+from .errors import BftaichiError, ConfigError, DataError, NoSurfaceError
 from .fusion import TSDFVolume
 from .io import prepare_out_dir, write_json, write_mesh_ply, write_npz
 
@@ -89,16 +89,81 @@ def load_gt_mesh(cfg: Config, frames) -> trimesh.Trimesh | None:
 
 
 class _Timer:
+    """Seconds per stage; ``current`` is the stage running (or the last one started)."""
+
     def __init__(self):
         self.seconds: dict[str, float] = {}
+        self.current = "start"
 
     @contextmanager
     def __call__(self, stage: str):
         t0 = time.perf_counter()
+        self.current = stage
         try:
             yield
         finally:
             self.seconds[stage] = round(self.seconds.get(stage, 0.0) + time.perf_counter() - t0, 4)
+
+
+#: Everything a run writes into its folder (files and the plots/ folder).
+RUN_OUTPUTS = ("tsdf_mesh.ply", "mesh.ply", "band.npz", "report.json", "config.toml",
+               "preview.html", "nbv.json", "plots")
+
+
+class SolverError(BftaichiError):
+    """A solve did not converge and ``run.strict`` asks not to write its result."""
+
+
+class _Staging:
+    """A run writes into ``OUT/.bftaichi-partial/`` and moves its outputs into ``OUT`` only
+    when every stage has finished (:meth:`commit`), so an interrupted or failed run leaves the
+    previous complete outputs, or none (:meth:`abort` deletes the staged files). The failure
+    is recorded: ``report.json`` with ``status`` ``failed`` / ``interrupted`` and the stage
+    when the folder held no run, else ``failed_run.json`` next to the previous run's files."""
+
+    def __init__(self, out: Path):
+        import shutil
+
+        self.out = out
+        self.dir = out / ".bftaichi-partial"
+        if self.dir.exists():  # left by a run killed outright (SIGKILL, power loss)
+            shutil.rmtree(self.dir, ignore_errors=True)
+        try:
+            self.dir.mkdir()
+        except OSError as e:
+            raise DataError(f"cannot write into output folder {out}: {e.strerror or e}") from None
+
+    def commit(self) -> None:
+        import shutil
+
+        produced = {p.name for p in self.dir.iterdir()}
+        for name in RUN_OUTPUTS:  # the previous run's outputs this run does not replace
+            old = self.out / name
+            if name not in produced and (old.exists() or old.is_symlink()):
+                shutil.rmtree(old) if old.is_dir() else old.unlink()
+        for name in sorted(produced):
+            target = self.out / name
+            if target.is_dir():
+                shutil.rmtree(target)
+            os.replace(self.dir / name, target)
+        (self.out / "failed_run.json").unlink(missing_ok=True)
+        self.dir.rmdir()
+
+    def abort(self, stage: str, error: BaseException) -> None:
+        import shutil
+
+        from .io import write_json
+
+        shutil.rmtree(self.dir, ignore_errors=True)
+        interrupted = isinstance(error, KeyboardInterrupt)
+        record = {"status": "interrupted" if interrupted else "failed", "stage": stage,
+                  "error": "interrupted (Ctrl-C or SIGTERM)" if interrupted else
+                  f"{type(error).__name__}: {error}"}
+        previous = (self.out / "report.json").exists()
+        try:
+            write_json(self.out / ("failed_run.json" if previous else "report.json"), record)
+        except BftaichiError:
+            pass  # the folder cannot be written (disk full, ...): nothing more to keep
 
 
 def _progress(iterable, total: int, desc: str, enabled: bool, unit: str = "frame"):
@@ -183,6 +248,18 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         frames = open_frames(cfg) if frames is None else frames
         gt = load_gt_mesh(cfg, frames)
     out = prepare_out_dir(out_dir, overwrite=overwrite)
+    staging = _Staging(out)
+    try:
+        report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress)
+    except BaseException as e:
+        staging.abort(timer.current, e)
+        raise
+    staging.commit()
+    return report
+
+
+def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool):
+    """The stages of :func:`run`, writing into the staging folder ``out``."""
     with timer("init"):
         backend.init(cfg.run.arch)
     vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m,
@@ -222,6 +299,14 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         with timer("posterior"):
             post = solve_posterior(frames, voxels, cfg, frame_iter=reader)
         timer.seconds["posterior"] = round(timer.seconds["posterior"] - (reader.wait_s - wait0), 4)
+        if cfg.run.strict and not post.solver["converged"]:
+            m = post.solver
+            raise SolverError(
+                f"the MAP solve did not converge ({m.get('reason', 'stopped')}; "
+                f"{m['iterations']} iterations, relative residual {m['relative_residual']:.2e} "
+                f"> solver.tol = {cfg.solver.tol:g}); run.strict refuses to write its mesh: "
+                "raise solver.maxiter, check the scene, or run without --strict (the mesh is "
+                "then written and flagged in report.json)")
         with timer("mesh"):
             post_mesh = post.extract_mesh()
     timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
@@ -263,6 +348,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
                       var=post.var, tsdf=post.tsdf, weight=post.weight)
         save_config(cfg, out / "config.toml")
     report = {
+        "status": "complete",
         "bftaichi_version": __version__,
         "scene": cfg.scene.name,
         "source": getattr(frames, "name", cfg.scene.data),
@@ -285,6 +371,10 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         "solver": ({"map": post.solver, "variance": post.variance,
                     "observations": post.observations, "seconds": post.seconds}
                    if post else None),
+        "flags": ([] if post is None else
+                  (["map_not_converged"] if not post.solver["converged"] else [])
+                  + ([f"{post.variance['n_not_converged']}_probes_not_converged"]
+                     if post.variance.get("n_not_converged") else [])),
         "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m,
                  "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
         "metrics": metrics,

@@ -1,0 +1,100 @@
+"""Bad input, failures and interruptions: the catalogue of docs/robustness.md, and that nothing
+is lost or half-written (bftaichi/pipeline.py: runs are staged and moved in when complete)."""
+
+import json
+import re
+from pathlib import Path
+from unittest import mock
+
+import pytest
+
+from bftaichi.cli import main
+from robustness_cases import CASES, run_case, sets
+
+
+@pytest.fixture(scope="module")
+def frames_root(tmp_path_factory):
+    from robustness_cases import frames_7scenes
+
+    root = tmp_path_factory.mktemp("catalogue")
+    frames_7scenes(root)
+    return root
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_catalogue_case(case, frames_root, tmp_path):
+    import shutil
+
+    shutil.copytree(frames_root / "frames", tmp_path / "frames")
+    code, err = run_case(case, tmp_path)
+    assert code == case.code, err
+    assert re.search(case.message, err, re.S), err
+    assert "Traceback" not in err
+    out = tmp_path / "out"
+    if out.is_dir():  # nothing half-written: no staging or temp file left
+        assert not (out / ".bftaichi-partial").exists()
+        assert not list(out.glob(".*.tmp"))
+
+
+def _complete_run(out: Path):
+    assert main(["run", "-q", "--out", str(out), *sets()]) == 0
+    return {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+
+
+def test_an_interrupted_run_keeps_the_previous_outputs(tmp_path):
+    out = tmp_path / "out"
+    before = _complete_run(out)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    with mock.patch("bftaichi.posterior.solve_posterior", interrupted):
+        assert main(["run", "-q", "--overwrite", "--out", str(out), *sets()]) == 130
+    after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    failure = json.loads(after.pop("failed_run.json"))
+    assert after == before  # byte for byte
+    assert failure["status"] == "interrupted" and failure["stage"] == "posterior"
+    assert not (out / ".bftaichi-partial").exists()
+    # the next complete run replaces everything and clears the failure record
+    assert main(["run", "-q", "--overwrite", "--out", str(out), *sets()]) == 0
+    assert not (out / "failed_run.json").exists()
+    assert json.loads((out / "report.json").read_text())["status"] == "complete"
+
+
+def test_a_failed_first_run_leaves_only_its_report(tmp_path):
+    out = tmp_path / "out"
+    assert main(["run", "-q", "--strict", "--out", str(out), *sets("solver.maxiter=2")]) == 2
+    assert [p.name for p in out.iterdir()] == ["report.json"]
+    r = json.loads((out / "report.json").read_text())
+    assert r["status"] == "failed" and r["stage"] == "posterior" and "converge" in r["error"]
+
+
+def test_disk_full_keeps_the_previous_outputs(tmp_path):
+    import errno
+    import os
+
+    out = tmp_path / "out"
+    before = _complete_run(out)
+
+    def fsync(fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    with mock.patch("bftaichi.io.os.fsync", fsync):
+        assert main(["run", "-q", "--overwrite", "--out", str(out), *sets()]) == 2
+    after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert after == before  # the failure record could not be written either: disk full
+    assert not list(out.glob(".*.tmp")) and not (out / ".bftaichi-partial").exists()
+
+
+def test_not_converged_without_strict_is_written_and_flagged(tmp_path):
+    out = tmp_path / "out"
+    assert main(["run", "-q", "--out", str(out), *sets("solver.maxiter=2")]) == 0
+    r = json.loads((out / "report.json").read_text())
+    assert r["status"] == "complete" and "map_not_converged" in r["flags"]
+    assert not r["solver"]["map"]["converged"] and (out / "mesh.ply").exists()
+
+
+def test_outputs_are_readable_by_others(tmp_path):
+    out = tmp_path / "out"
+    _complete_run(out)
+    for p in out.iterdir():
+        if p.is_file():
+            assert p.stat().st_mode & 0o044, p  # not the 0600 of a temp file
