@@ -55,6 +55,17 @@ def _check_range(key: str, value: float, lo: float | None = None, hi: float | No
         raise ConfigError(f"{key} = {value} is out of range: must be <= {hi}")
 
 
+def _check_finite(section: str, sub) -> None:
+    """Raise ConfigError naming the key if a float (or list of floats) field of the section
+    ``sub`` holds NaN or inf; also the fields no range check covers (e.g. a camera height)."""
+    for key, typ in typing.get_type_hints(type(sub)).items():
+        if typ is float or typ == list[float]:
+            value = getattr(sub, key)
+            for v in (value if isinstance(value, list) else [value]):
+                if isinstance(v, float) and not math.isfinite(v):
+                    raise ConfigError(f"{section}.{key} = {value} is not a finite number")
+
+
 def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
     if value not in choices:
         raise ConfigError(f"{key} = {value!r} is not one of {', '.join(choices)}")
@@ -602,9 +613,15 @@ class RunConfig:
     """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.viz``)
     at the end of a run."""
 
+    memory_budget: float = 0.8
+    """Peak memory a run may take (:mod:`bftaichi.resources`; a run whose estimate exceeds it
+    stops before allocating, naming a voxel size that fits): ``0 < x <= 1`` is a fraction of
+    the available RAM (0.8 leaves a fifth to the rest of the machine), ``x > 1`` is GiB."""
+
     def check(self) -> None:
         _check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
         _check_choice("run.stages", self.stages, ("full", "tsdf_only"))
+        _check_range("run.memory_budget", self.memory_budget, 0.0, 1e6, lo_open=True)
 
 
 @dataclass
@@ -626,6 +643,7 @@ class Config:
     def check(self) -> "Config":
         """Validate every section; raise ConfigError naming the first bad key."""
         for f in dataclasses.fields(self):
+            _check_finite(f.name, getattr(self, f.name))
             getattr(self, f.name).check()
         return self
 

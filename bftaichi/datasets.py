@@ -122,7 +122,9 @@ import json
 import math
 import numbers
 import re
+import tokenize
 import warnings
+import zipfile
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
@@ -251,8 +253,14 @@ def read_depth_npy(path: Path, depth_scale: float = 1.0) -> np.ndarray:
         a = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise DataError(f"{path}: depth array not found") from None
-    except (OSError, ValueError, EOFError) as e:
-        raise DataError(f"{path}: cannot read depth array, the file is corrupt ({e})") from e
+    except (OSError, ValueError, EOFError, SyntaxError, tokenize.TokenError, zipfile.BadZipFile) as e:
+        # numpy parses the header with ast/tokenize (a corrupt one raises SyntaxError or
+        # TokenError) and opens anything starting with the zip magic as an .npz (BadZipFile)
+        raise DataError(f"{path}: cannot read depth array, the file is corrupt "
+                        f"({type(e).__name__}: {e})") from e
+    if not isinstance(a, np.ndarray):  # np.load opens a zip (.npz) archive whatever the name
+        a.close()
+        raise DataError(f"{path}: depth must be a .npy array, but the file is an .npz archive")
     if a.ndim != 2 or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
         raise DataError(f"{path}: depth must be a real-valued HxW array, got shape {a.shape} "
                         f"dtype {a.dtype}")
