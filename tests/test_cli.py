@@ -294,7 +294,9 @@ def test_user_error_exits_2_with_a_message(case, tmp_path, capsys):
     assert err.startswith("error: ")
     assert named in err
     assert "Traceback" not in err + stdout
-    assert not list(tmp_path.rglob("tsdf_mesh.ply")) and not list(tmp_path.rglob("report.json"))
+    assert not list(tmp_path.rglob("tsdf_mesh.ply")) and not list(tmp_path.rglob("mesh.ply"))
+    for report in tmp_path.rglob("report.json"):  # only the record of the failure, if any
+        assert json.loads(report.read_text())["status"] == "failed", report
 
 
 def test_synth_into_a_file_exits_2(tmp_path, capsys):
