@@ -13,7 +13,7 @@ import os
 import platform
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -94,13 +94,15 @@ class _Timer:
     def __init__(self):
         self.seconds: dict[str, float] = {}
         self.current = "start"
+        self.rss = None  # a resources.PeakRSS: peak memory per stage too
 
     @contextmanager
     def __call__(self, stage: str):
         t0 = time.perf_counter()
         self.current = stage
         try:
-            yield
+            with (self.rss(stage) if self.rss is not None else nullcontext()):
+                yield
         finally:
             self.seconds[stage] = round(self.seconds.get(stage, 0.0) + time.perf_counter() - t0, 4)
 
@@ -247,10 +249,15 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     with timer("load"):  # before touching the output folder: bad data leaves nothing behind
         frames = open_frames(cfg) if frames is None else frames
         gt = load_gt_mesh(cfg, frames)
+    from .resources import PeakRSS, check_memory
+
+    with timer("memory_check"):  # before the output folder: a refused run writes nothing
+        memory = check_memory(cfg, frames)
+    timer.rss = PeakRSS()
     out = prepare_out_dir(out_dir, overwrite=overwrite)
     staging = _Staging(out)
     try:
-        report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress)
+        report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress, memory)
     except BaseException as e:
         staging.abort(timer.current, e)
         raise
@@ -258,7 +265,8 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     return report
 
 
-def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool):
+def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool,
+                memory: dict):
     """The stages of :func:`run`, writing into the staging folder ``out``."""
     with timer("init"):
         backend.init(cfg.run.arch)
@@ -381,6 +389,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
         "uncertainty": uncertainty,
         "cameras": cameras,
         "has_ground_truth": gt is not None,
+        "memory": {"estimate": memory, "peak_rss": timer.rss.to_dict() if timer.rss else None},
         "machine": {"python": platform.python_version(), "arch": cfg.run.arch,
                     "cpus": os.cpu_count()},
         "config": cfg.to_dict(),
