@@ -32,8 +32,9 @@ ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = {
     "default": [],
     "count_once=pixel": ["observation.count_once=pixel"],
-    "paper prior (membrane + anchors)": ["prior.curvature=0", "prior.lam=0.01",
-                                         "prior.anchors=boundary"],
+    "samples within +-tau (front=1)": ["observation.front=1"],
+    "paper model (membrane + anchors, +-tau)": ["prior.curvature=0", "prior.lam=0.01",
+                                                "prior.anchors=boundary", "observation.front=1"],
 }
 
 
