@@ -384,6 +384,25 @@ class ObservationConfig:
     (tools/evalviews_table.py): median depth error 8.75 -> 8.45 mm, share within 5 cm 0.874 ->
     0.898."""
 
+    gate: float = 0.5
+    """Side gate against the bootstrap, in units of ``tau`` (0 = off): a sample behind the
+    measured surface (``y < 0``) is dropped where the TSDF interpolated at it says free space by
+    more than ``gate * tau``, and one in front (``y > 0``) where it says inside by more. Samples
+    whose trilinear cell straddles an occlusion edge (or a flying pixel at one) assert "inside"
+    in voxels that many rays saw as free; without the gate they bent the posterior through zero
+    there (surfaces fattened past their silhouettes). Only the side is tested, not the value:
+    the TSDF holds projective distances, which differ from ``y`` at oblique views. Measured
+    (tools/evalviews_table.py, tools/results_table.py) in the README's held-out-view section."""
+
+    fit_noise: bool = True
+    """Fit the per-pixel noise the depth model does not explain (pose and calibration errors of
+    a recorded trajectory) to the frames themselves before observing them
+    (:func:`bftaichi.posterior.estimate_extra_noise`), and add it to ``sigma_model_m`` in
+    quadrature. The residuals are those of the bootstrap, so its own rendering error counts
+    too: a 2 cm-voxel sphere whose noise is the Kinect model's gets ~5 mm, the same sphere with
+    1 cm Gaussian noise ~11 mm (tests/test_posterior.py); 7-Scenes redkitchen ~11 mm (README).
+    report.json: ``solver.observations.noise_fit``."""
+
     count_once: str = "voxel"
     """How a pixel's samples, which share one depth error, split its information ``1/sigma^2``:
     ``pixel`` gives each of its n samples ``1/n`` (the pixel counts once in all); ``voxel``
@@ -397,6 +416,7 @@ class ObservationConfig:
         _check_range("observation.stride", self.stride, 1, 64)
         _check_range("observation.spacing_voxels", self.spacing_voxels, 0.1, 10.0)
         _check_range("observation.front", self.front, 1.0, 3.0)
+        _check_range("observation.gate", self.gate, 0.0, 10.0)
         _check_range("observation.depth_a_m", self.depth_a_m, 0.0)
         _check_range("observation.depth_b", self.depth_b, 0.0)
         _check_range("observation.cos_min", self.cos_min, 0.01, 1.0)
@@ -435,6 +455,16 @@ class PriorConfig:
     tsdf.trunc_m``, which no observation sample reaches (samples lie within ``+-tau`` of the
     measured surface), pulled to their bootstrap value (0 = off)."""
 
+    free: float = 1000.0
+    """Free-space constraint strength per voxel^2 (0 = off). A voxel the bootstrap saw as free
+    space (``tsdf > tau``, observed) cannot hold the surface: its SDF is positive. That is an
+    inequality, so it is enforced by an active set: after the MAP, every such voxel whose mean
+    is below half a voxel is anchored to its TSDF value with this strength, and the MAP is
+    solved again (warm-started) until none is left or 4 passes are done. Off the violators the
+    posterior is unchanged; the anchors are information, so they also lower those voxels'
+    variance. 1000 per voxel^2 is about the data term of 40 frames at 2 cm; 10 was too weak to
+    hold the voxels against straddling samples (tools/evalviews_table.py)."""
+
     eps: float = 1e-4
     """``eps * I`` per voxel^2 keeps Q positive definite where nothing else does."""
 
@@ -457,6 +487,7 @@ class PriorConfig:
         _check_range("prior.lam", self.lam, 0.0)
         _check_range("prior.lam_b", self.lam_b, 0.0)
         _check_range("prior.outer", self.outer, 0.0)
+        _check_range("prior.free", self.free, 0.0)
         _check_choice("prior.anchors", self.anchors, ("none", "boundary", "all"))
         _check_range("prior.eps", self.eps, 0.0, lo_open=True)
 

@@ -219,11 +219,14 @@ class Planner:
         self.depth_range = depth_range or (cfg.scene.depth_min_m, cfg.scene.depth_max_m)
         self.block_keys, self.block_table = build_block_table(post.ijk)
         self.observed = (post.weight > 0).astype(np.uint8)
+        # the noise fitted to the fused frames (ObservationConfig.fit_noise) holds for new ones
+        fit = (post.observations or {}).get("noise_fit") or {}
+        self.sigma_model_m = float(np.hypot(o.sigma_model_m, fit.get("sigma_extra_m") or 0.0))
         self.observer = Observer(self.block_keys, self.block_table, len(post.ijk), vs,
                                  cfg.tsdf.trunc_m, spacing_m=o.spacing_voxels * vs,
                                  depth_a_m=o.depth_a_m, depth_b=o.depth_b,
                                  depth_z0_m=o.depth_z0_m, cos_min=o.cos_min,
-                                 sigma_pose_m=o.sigma_pose_m, sigma_model_m=o.sigma_model_m,
+                                 sigma_pose_m=o.sigma_pose_m, sigma_model_m=self.sigma_model_m,
                                  count_once=o.count_once)
         eps = cfg.nbv.eps_voxels * vs
         self.omega = (post.weight > 0) & (np.abs(post.mean) <= eps)
@@ -258,7 +261,7 @@ class Planner:
         centre = 0.5 * (self.coverage.lo + self.coverage.hi)
         dist = float(np.linalg.norm(np.asarray(T_W_C)[:3, 3] - centre))
         sigma2 = (o.depth_a_m + o.depth_b * (dist - o.depth_z0_m) ** 2) ** 2 \
-            + o.sigma_pose_m ** 2 + o.sigma_model_m ** 2
+            + o.sigma_pose_m ** 2 + self.sigma_model_m ** 2
         f = 0.5 * (self.K[0, 0] + self.K[1, 1])
         pixels = (self.post.voxel_size * f / (max(dist, 1e-6) * o.stride)) ** 2
         w0 = max(pixels, 1e-3) / sigma2

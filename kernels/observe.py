@@ -25,6 +25,14 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
    0.5)``, fraction ``f = x_j / voxel_size - 0.5 - c0``, corner ``c0 + (ci, cj, ck)`` has weight
    ``prod(f if c else 1 - f)``; corner ``c = 4 ci + 2 cj + ck``. A sample is *accepted* when all
    8 corners are band voxels, otherwise *dropped* (counted).
+   3b. **Side gate** (optional: a reference SDF per band voxel, e.g. the bootstrap TSDF, and
+   ``gate_m > 0``): the reference interpolated at the sample, ``t = sum_c a_c ref_c``, must not
+   contradict the sample's side of the surface by more than the gate: a sample behind
+   (``y < 0``) with ``t > gate_m``, or in front (``y > 0``) with ``t < -gate_m``, is *gated*
+   (counted, not accepted). A corner without a reference value (NaN) keeps the sample. This
+   drops the samples whose cell straddles an occlusion edge: behind a foreground pixel at the
+   silhouette, the cell reaches into the free space beside the object, which the reference
+   saw as free.
 4. **Noise**: ``sigma^2 = sigma_depth(D, angle)^2 + sigma_pose^2 + sigma_model^2`` with the
    Kinect-style axial model divided by the incidence cosine,
    ``sigma_depth = (a + b (D - z0)^2) / max(cos(angle), cos_min)``, ``cos(angle) = -n . ray /
@@ -93,7 +101,8 @@ P_RADIUS = 31  # normal tangent offset r, pixels
 P_JUMP = 32  # tan(normal_max_slope): neighbour depth jump limit is r D tan / f
 P_SCALE = 33  # fixed-point units per unit of S / h
 P_SHARE = 34  # most samples of one pixel that share a depth error in one voxel's estimate
-N_PARAMS = 35
+P_GATE = 35  # side gate: largest contradiction of y's side by the reference SDF, metres (0: off)
+N_PARAMS = 36
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -102,14 +111,16 @@ C_ACCEPTED = 2  # accepted samples
 C_DROPPED = 3  # samples dropped because a corner of their cell is not in the band
 C_SATURATED = 4  # accumulator adds that started beyond SATURATION
 C_FALLBACK = 5  # used pixels whose normal fell back to the ray direction
-N_COUNTS = 6
+C_GATED = 6  # samples rejected by the reference gate (all corners in the band)
+N_COUNTS = 7
 COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropped", "saturated",
-               "normal_fallbacks")
+               "normal_fallbacks", "samples_gated")
 
 # Row status in frame_rows:
 ROW_NONE = 0  # no sample (pixel invalid or z <= 0)
 ROW_ACCEPTED = 1
 ROW_DROPPED = 2
+ROW_GATED = 3  # all corners in the band, rejected by the reference gate
 
 
 def _corner(c: int) -> tuple[int, int, int]:
@@ -251,6 +262,7 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                    prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                    block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
                    block_table: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                   ref: ti.types.ndarray(dtype=ti.f32, ndim=1),
                    stride: ti.i32, m: ti.i32, mf: ti.i32,
                    S_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
                    h_acc: ti.types.ndarray(dtype=ti.i64, ndim=1),
@@ -282,10 +294,11 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     spacing = prm[P_SPACING]
     scale = prm[P_SCALE]
     cos_min = prm[P_COS_MIN]
+    gate = prm[P_GATE]
     ti.loop_config(block_dim=4)  # rows differ in valid pixels: small chunks balance threads
     for vs in range((H + stride - 1) // stride):
         v = vs * stride
-        n_valid, n_used, n_acc_row, n_drop, n_sat, n_fb = 0, 0, 0, 0, 0, 0
+        n_valid, n_used, n_acc_row, n_drop, n_sat, n_fb, n_gate = 0, 0, 0, 0, 0, 0, 0
         for jj in range(mf + m + 1):
             blocks[vs, jj, 0] = 1 << 30  # no block has this coordinate: empty cache
         for us in range(n_us):
@@ -322,9 +335,25 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                                 blocks[vs, j + mf, 3 + t] = rows[t]
                         idx = _cell_corners(block_table, c0, b, ti.Vector(
                             [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
+                        gated = 0
+                        if idx[7] >= 0 and gate > 0:
+                            # step 3b: the reference SDF interpolated at the sample must not
+                            # put it on the other side of the surface by more than the gate
+                            g = o + z * m_ray
+                            a = _trilinear(g - ti.cast(c0, ti.f64))
+                            t_ref = ti.f64(0.0)
+                            for c in ti.static(range(8)):
+                                t_ref += a[c] * ti.cast(ref[idx[c]], ti.f64)
+                            y = ti.cast(j, ti.f64) * spacing * n_dot_ray
+                            # NaN (a corner without reference) fails both tests: kept
+                            if (y < 0 and t_ref > gate) or (y > 0 and t_ref < -gate):
+                                gated = 1
                         for c in ti.static(range(8)):
                             scratch[vs, j + mf, c] = idx[c]
-                        if idx[7] >= 0:
+                        if gated:
+                            scratch[vs, j + mf, 7] = -2
+                            n_gate += 1
+                        elif idx[7] >= 0:
                             n_acc += 1
                         else:
                             n_drop += 1
@@ -344,7 +373,8 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                         accepted = idx[7] >= 0
                         if to_rows:
                             r = (vs * n_us + us) * (mf + m + 1) + mf + j
-                            row_status[r] = ti.select(accepted, ROW_ACCEPTED, ROW_DROPPED)
+                            row_status[r] = ti.select(accepted, ROW_ACCEPTED, ti.select(
+                                idx[7] == -2, ROW_GATED, ROW_DROPPED))
                             row_y[r] = y
                             row_w[r] = ti.select(accepted, w, 0.0)
                             row_z[r] = z
@@ -373,6 +403,7 @@ def _observe_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
         counts[vs, C_DROPPED] = n_drop
         counts[vs, C_SATURATED] = n_sat
         counts[vs, C_FALLBACK] = n_fb
+        counts[vs, C_GATED] = n_gate
 
 
 @ti.kernel
@@ -477,6 +508,8 @@ class Observer:
             accepts (the fixed-point scale is sized for the largest weight).
         sigma_model_m: model noise (planar approximation, discretisation), metres.
         normal_radius_px: tangent offset r of the normal estimate, pixels (module docstring).
+        reference, gate_m: the side gate of step 3b: (N,) reference SDF (metres; NaN where
+            there is none) and the gate in metres (default 0: no gate, no reference needed).
         front_m: how far in front of the measured surface the samples reach, metres (>=
             ``trunc_m``; default ``trunc_m``). Samples there observe ``y = <n, x - p>`` like
             the others: the free space the ray crossed, as the TSDF sees it.
@@ -493,7 +526,8 @@ class Observer:
                  depth_a_m: float = 0.0012, depth_b: float = 0.0019, depth_z0_m: float = 0.4,
                  cos_min: float = 0.3, sigma_pose_m: float = 0.0, sigma_model_m: float = 0.001,
                  normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0,
-                 count_once: str = "pixel", front_m: float | None = None):
+                 count_once: str = "pixel", front_m: float | None = None,
+                 reference: np.ndarray | None = None, gate_m: float = 0.0):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
@@ -546,6 +580,18 @@ class Observer:
         if not (math.isfinite(self.front_m) and self.front_m >= self.trunc_m):
             raise ValueError(f"Observer: front_m = {front_m} must be >= trunc_m = {self.trunc_m}")
         self.mf = sample_count(self.front_m, self.spacing_m) // 2
+        self.gate_m = float(gate_m)
+        if not (math.isfinite(self.gate_m) and self.gate_m >= 0):
+            raise ValueError(f"Observer: gate_m = {gate_m} must be >= 0 (0: no gate)")
+        if self.gate_m > 0:
+            if reference is None:
+                raise ValueError("Observer: gate_m > 0 needs a reference SDF (N,)")
+            self.reference = np.ascontiguousarray(reference, np.float32)
+            if self.reference.shape != (int(n_voxels),):
+                raise ValueError(f"Observer: reference has shape {self.reference.shape}, "
+                                 f"expected ({int(n_voxels)},)")
+        else:
+            self.reference = np.zeros(1, np.float32)
         # scale = 2^FRACTION_BITS / w_max, rounded down to a power of two (exact multiplies)
         self.w_max = 1.0 / var_floor
         self.fixed_scale = 2.0 ** math.floor(FRACTION_BITS - math.log2(self.w_max))
@@ -600,6 +646,7 @@ class Observer:
         prm[P_JUMP] = math.tan(math.radians(self.normal_max_slope_deg))
         prm[P_SCALE] = self.fixed_scale
         prm[P_SHARE] = self.share
+        prm[P_GATE] = self.gate_m
         return depth, prm
 
     def _scratch(self, n_rows: int) -> tuple:
@@ -632,7 +679,7 @@ class Observer:
         n_vs = (depth.shape[0] + stride - 1) // stride
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
         if self.n_voxels:
-            _observe_frame(depth, prm, self.block_keys, self.block_table, stride, self.m, self.mf,
+            _observe_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride, self.m, self.mf,
                            self.S_acc, self.h_acc, counts, *self._scratch(n_vs),
                            *self._dummy_rows, 0)
         frame = counts.sum(axis=0)
@@ -662,7 +709,7 @@ class Observer:
                 np.zeros(R), np.zeros(R, np.int32))
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
         if self.n_voxels:
-            _observe_frame(depth, prm, self.block_keys, self.block_table, stride, self.m, self.mf,
+            _observe_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride, self.m, self.mf,
                            self.S_acc, self.h_acc, counts, *self._scratch(n_vs), *rows, 1)
         idx, a, y, w, z, status = rows
         slot = np.arange(R) // n_s

@@ -24,6 +24,12 @@ kernels/observe.py (``c0 = floor(x / vs - 0.5)``).
    them, ``z = z_k + dz mu_k / (mu_k - mu_(k+1))`` (:func:`_zero_crossing`); 0 if there is none.
    A negative-to-positive pair (a back face, or a camera starting inside) never counts, and an
    invalid sample breaks the pair: no surface is guessed across unobserved cells.
+   3b. *Entry point*: where a valid sample ``k`` with ``mu_k <= 0`` follows an invalid one (or
+   starts the march), the ray's part inside sample k's cell is still observed: the point where
+   the ray enters that cell, ``z_e = max(z_(k-1), z_min, entry planes of the cell)``, takes the
+   invalid sample's place (trilinear mean there, fraction clipped to [0, 1]); ``mu(z_e) > 0``
+   makes ``(z_e, z_k)`` the pair. Without it a surface less than one step inside the observed
+   region was missed (a thin observed shell at the edge of what the frames saw).
 4. With a variance field (``var``): the depth's standard deviation ``sigma_z = sqrt(s) /
    max(slope, slope_min)``, ``s`` the trilinear variance interpolated to the crossing like the
    depth, ``slope = (mu_k - mu_(k+1)) / dz`` the mean's change per metre of camera depth there.
@@ -227,6 +233,21 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                                              b[2] + cs[2])
                 mu, s, valid = _sdf_sample(block_table, mean, observed, var, with_var, g, c0, b,
                                            rows)
+                if valid and not prev_valid and mu <= 0:
+                    # entering observed cells: the previous sample is unusable, but this
+                    # cell's part of the ray between them is observed; its entry point (step
+                    # 3b) stands in for the previous sample
+                    z_e = ti.max(z - dz, z_min)
+                    for ax in ti.static(range(3)):
+                        if m[ax] > 0:
+                            z_e = ti.max(z_e, (ti.cast(c0[ax], ti.f64) - o[ax]) / m[ax])
+                        elif m[ax] < 0:
+                            z_e = ti.max(z_e, (ti.cast(c0[ax] + 1, ti.f64) - o[ax]) / m[ax])
+                    f_e = ti.min(ti.max(o + z_e * m - ti.cast(c0, ti.f64), 0.0), 1.0)
+                    mu_e, s_e, _v = _sdf_sample(block_table, mean, observed, var, with_var,
+                                                ti.cast(c0, ti.f64) + f_e, c0, b, rows)
+                    if mu_e > 0 and z_e < z:
+                        prev_valid, prev_mu, prev_z, prev_s = 1, mu_e, z_e, s_e
                 if valid and prev_valid and prev_mu > 0 and mu <= 0:
                     hit = _zero_crossing(prev_z, prev_mu, z, mu)
                     if ti.static(with_var):
@@ -234,7 +255,7 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                         # same linear interpolation), over the mean's slope along the ray
                         t = prev_mu / (prev_mu - mu)
                         s_hit = ti.max(prev_s + t * (s - prev_s), 0.0)
-                        slope = ti.max((prev_mu - mu) / dz, slope_min)
+                        slope = ti.max((prev_mu - mu) / (z - prev_z), slope_min)
                         hit_sigma = ti.sqrt(s_hit) / slope
                     break
                 prev_valid, prev_mu, prev_z, prev_s = valid, mu, z, s

@@ -341,6 +341,42 @@ def test_samples_whose_cell_leaves_the_band_are_dropped(sphere):
     assert stats["samples_dropped"] > 0 and stats["frames"] == 2
 
 
+def test_side_gate_drops_exactly_the_samples_the_reference_contradicts(sphere):
+    """(g) Side gate (step 3b): with the true SDF as reference nothing is gated; with a
+    reference that calls one half-space free (+1 m) and the other inside (-1 m), exactly the
+    ungated rows with ``y < 0, t > gate`` or ``y > 0, t < -gate`` (t: the reference
+    interpolated by the row's own weights) are gated, counted, and the rest is unchanged; a
+    NaN reference gates nothing."""
+    band, frames = sphere
+    gate = 0.5 * TRUNC
+    true_ref = sphere_sdf((band.ijk + 0.5) * VOXEL).astype(np.float32)
+    half = np.where(band.ijk[:, 0] >= 0, 1.0, -1.0).astype(np.float32)
+    plain = band.observer()
+    n_gated = 0
+    for frame in frames:
+        rows = plain.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+        exact = band.observer(reference=true_ref, gate_m=gate)
+        assert exact.integrate(frame.depth_m, frame.K, frame.T_W_C)["samples_gated"] == 0
+        t = (rows["a"] * half[rows["idx"]]).sum(axis=1)
+        contradicted = ((rows["y"] < 0) & (t > gate)) | ((rows["y"] > 0) & (t < -gate))
+        gated = band.observer(reference=half, gate_m=gate)
+        r = gated.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+        assert r["counts"]["samples_gated"] == contradicted.sum()
+        assert r["counts"]["samples_accepted"] == (~contradicted).sum()
+        kept = set(zip(r["pixel"].tolist(), np.round(r["z"], 9).tolist()))
+        assert kept == set(zip(rows["pixel"][~contradicted].tolist(),
+                               np.round(rows["z"][~contradicted], 9).tolist()))
+        n_gated += contradicted.sum()
+        unknown = band.observer(reference=np.full(len(band.ijk), np.nan, np.float32),
+                                gate_m=gate)
+        assert unknown.integrate(frame.depth_m, frame.K, frame.T_W_C)["samples_gated"] == 0
+    assert n_gated > 20
+    with pytest.raises(ValueError, match="reference"):
+        band.observer(gate_m=gate)
+    with pytest.raises(ValueError, match="reference has shape"):
+        band.observer(reference=half[:-1], gate_m=gate)
+
+
 def test_bad_inputs_are_rejected(sphere):
     """A noise model without a weight floor, a depth image with NaN and a bad stride raise
     ValueError naming the problem (nothing is accumulated)."""

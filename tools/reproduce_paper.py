@@ -39,8 +39,10 @@ PAPER = {  # BayesFusion-SDF, Table 2: CD, Acc, Comp, F@20, F@50
     "BayesFusion-SDF, no anchor": (0.00407, 0.04115, 0.01880, 0.3992, 0.7670),
     "BayesFusion-SDF + anchor": (0.00373, 0.02206, 0.02412, 0.6532, 0.9365),
 }
-# the paper's model: membrane GMRF (+ anchors), no curvature term, samples within +-tau
-PAPER_MODEL = ["prior.curvature=0", "observation.front=1"]
+# the paper's model: membrane GMRF (+ anchors), no curvature term, samples within +-tau; none
+# of bftaichi's additions (side gate, noise fit, free-space constraint)
+PAPER_MODEL = ["prior.curvature=0", "observation.front=1", "observation.gate=0",
+               "observation.fit_noise=false", "prior.free=0"]
 DEFAULT_ROW = "bftaichi default (+ curvature prior)"
 ALL_ROW = "BayesFusion-SDF + all anchors"
 #: Fig. 2: the paper-model rows by anchor setting (prior.anchors).
