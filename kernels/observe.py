@@ -679,7 +679,8 @@ class Observer:
         n_vs = (depth.shape[0] + stride - 1) // stride
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
         if self.n_voxels:
-            _observe_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride, self.m, self.mf,
+            _observe_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride,
+                           self.m, self.mf,
                            self.S_acc, self.h_acc, counts, *self._scratch(n_vs),
                            *self._dummy_rows, 0)
         frame = counts.sum(axis=0)
@@ -709,7 +710,8 @@ class Observer:
                 np.zeros(R), np.zeros(R, np.int32))
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
         if self.n_voxels:
-            _observe_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride, self.m, self.mf,
+            _observe_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride,
+                           self.m, self.mf,
                            self.S_acc, self.h_acc, counts, *self._scratch(n_vs), *rows, 1)
         idx, a, y, w, z, status = rows
         slot = np.arange(R) // n_s
