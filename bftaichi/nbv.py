@@ -15,7 +15,7 @@ For a candidate view ``v`` (pose ``T_W_C``, the run's intrinsics):
    exact posterior variance of voxel i if the view's information on it were the only change
    (a rank-one update of Q along ``e_i``). It ignores the correlations between voxels (what
    one voxel learns, its correlated neighbours partly knew), so it overestimates the exact
-   reduction, by 1.3-1.7x on the small problem of tests/test_nbv.py, but by a similar factor
+   reduction, by 1.25-2.1x on the small problem of tests/test_nbv.py, but by a similar factor
    for every candidate: checked against ``diag((Q + A_v^T W_v A_v)^-1)`` there (Spearman of
    the two rankings over 16 candidates >= 0.85).
 4. **Unknown space**: a ray that leaves the space some frame has seen (:class:`CoverageGrid`,

@@ -11,7 +11,8 @@ mesh, :func:`bftaichi.metrics.surface_sdf`) with the posterior sigma:
 - the Spearman rank correlation between sigma and ``|e|``, and AUSE (mm),
 - the posterior mesh's Chamfer distance next to the TSDF's.
 
-Variants (rows): the defaults; ``count_once=pixel`` (each pixel's information split over all its
+Variants (rows): the defaults; without the three additions made for real data (side gate,
+noise fit, free-space constraint); ``count_once=pixel`` (each pixel's information split over all its
 samples, DESIGN.md 3.3); the paper's prior (membrane + boundary anchors, no curvature term).
 Pass ``--only default`` to run the first row alone. Every figure of the README's calibration
 table comes from this script::
@@ -29,12 +30,15 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+NO_REAL_DATA_ADDITIONS = ["observation.gate=0", "observation.fit_noise=false", "prior.free=0"]
 VARIANTS = {
     "default": [],
+    "no gate, noise fit, free space": NO_REAL_DATA_ADDITIONS,
     "count_once=pixel": ["observation.count_once=pixel"],
     "samples within +-tau (front=1)": ["observation.front=1"],
     "paper model (membrane + anchors, +-tau)": ["prior.curvature=0", "prior.lam=0.01",
-                                                "prior.anchors=boundary", "observation.front=1"],
+                                                "prior.anchors=boundary", "observation.front=1",
+                                                *NO_REAL_DATA_ADDITIONS],
 }
 
 
