@@ -56,6 +56,9 @@ def test_evalviews_smoke_on_synthesised_frames(tmp_path, capsys):
         assert s["median_abs_m"] < 0.02 and s["completeness"] > 0.8, (m, s)
     c = r["calibration"]["coverage_normalised"]
     assert 0 < c[0] <= c[1] <= c[2] <= 1
+    # the held-out normalisation uses the extra noise the run fitted to the fused frames
+    fit = json.loads((out / "report.json").read_text())["solver"]["observations"]["noise_fit"]
+    assert r["calibration"]["sigma_extra_m"] == fit["sigma_extra_m"] >= 0
     assert (out / "mesh.ply").exists() and (out / "tsdf_mesh.ply").exists()
     capsys.readouterr()
     assert main(["evalviews", str(data), "--out", str(tmp_path / "ev1"), "--every", "1"]) == 2
