@@ -162,7 +162,8 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_
                         depth_z0_m=o.depth_z0_m, cos_min=o.cos_min, sigma_pose_m=o.sigma_pose_m,
                         sigma_model_m=sigma_model, count_once=o.count_once,
                         front_m=o.front * cfg.tsdf.trunc_m,
-                        reference=np.where(band["weight"] > 0, band["tsdf"], np.nan),
+                        reference=np.where(band["weight"] > 0, band["tsdf"],
+                                           np.float32(np.nan)),
                         gate_m=o.gate * cfg.tsdf.trunc_m)
     for frame in (frame_iter(frames, "observe") if frame_iter else frames):
         observer.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=o.stride)

@@ -297,10 +297,10 @@ def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: flo
     # per band voxel ~205 B (compaction temporaries, nbr (27,) i32, ijk, tsdf, weight, core)
     out["band"] = persist + cand_blocks * BLOCK_VOXELS * 14 + 205 * N
     band = 133 * N + band_blocks * BLOCK_VOXELS * 4  # ijk, nbr, tsdf, weight, core, x0; table
-    # observe: the Observer's 132 B per voxel (S_acc (14,) i64, h_acc i64, ijk); finalize adds
-    # S (27,) f32 and h (112 B) plus its scratch
-    out["observe"] = persist + band + 132 * N + 112 * N
-    post = band + 132 * N + 112 * N + 24 * N  # + prior's b0, h, the MAP mean
+    # observe: the Observer's 136 B per voxel (S_acc (14,) i64, h_acc i64, ijk, reference
+    # f32); finalize adds S (27,) f32 and h (112 B) plus its scratch
+    out["observe"] = persist + band + 136 * N + 112 * N
+    post = band + 136 * N + 112 * N + 24 * N  # + prior's b0, h, the MAP mean
     # MAP: the compact layout (64 B) and its build temporaries (~250 B), five float64 vectors
     out["map"] = persist + post + 370 * N
     # variance: K = 16 float32 probes: Z, U, and the padded B, X, R, P, AP blocks (64 B each)
@@ -369,7 +369,7 @@ def estimate_memory(cfg, frames, *, sample: SceneSample | None = None) -> dict:
       sides of the surface plus one dilation layer each side (kernels/band.py); so memory grows
       as 1/v^2 for a fixed truncation in voxels, 1/v^3 for a fixed one in metres;
     * per stage, the arrays it holds (:func:`_stage_bytes`: per-voxel byte counts from the
-      kernels' documented layouts, e.g. the Observer's 132 B and the 16 float32 probe columns
+      kernels' documented layouts, e.g. the Observer's 136 B and the 16 float32 probe columns
       of the variance) on top of :data:`BASE_BYTES`.
 
     Calibration (tools/memory_estimate.py runs it), estimate / measured peak RSS of a fresh

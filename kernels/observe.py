@@ -517,8 +517,8 @@ class Observer:
             neighbouring depths still count as one surface in the normal estimate, degrees.
 
     Raises ValueError for inconsistent inputs (the weight needs a floor: one of ``depth_a_m``,
-    ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 132
-    bytes per band voxel (int64 accumulators, ijk).
+    ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 136
+    bytes per band voxel (int64 accumulators, ijk, the gate's float32 reference).
     """
 
     def __init__(self, block_keys: np.ndarray, block_table: np.ndarray, n_voxels: int,
