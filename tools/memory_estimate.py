@@ -35,10 +35,16 @@ from bftaichi.resources import PeakRSS
 scene, out, *sets = sys.argv[1:]
 cfg = load_config(scene or None, sets)
 report = run(cfg, out, overwrite=True, progress=False)
+# The run's PeakRSS resets the kernel's high-water mark at each stage, so VmHWM now holds only
+# the peak since the last stage began: the whole run's peak is the larger of it and the
+# highest stage peak the report recorded.
 peak = None
 for line in open("/proc/self/status"):
     if line.startswith("VmHWM:"):
         peak = int(line.split()[1]) * 1024
+stage_peak = ((report.get("memory") or {}).get("peak_rss") or {}).get("peak")
+if stage_peak and (peak is None or stage_peak > peak):
+    peak = int(stage_peak)
 print(json.dumps({"peak_bytes": peak, "counts": report["counts"],
                   "seconds": report["seconds"]["total"]}))
 """
