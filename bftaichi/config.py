@@ -412,6 +412,11 @@ class ObservationConfig:
     conservative (tools/calibration.py: median sigma 3.3 mm for 1.5 mm RMS error); ``voxel``
     gives 2.1 mm and a lower Chamfer distance on every shipped scene (tools/results_table.py)."""
 
+    def axial_sigma_m(self, depth_m):
+        """The axial depth noise ``a + b (D - z0)^2`` (metres) at depth ``depth_m`` (float or
+        array), without the incidence factor: the model the observation kernel uses."""
+        return self.depth_a_m + self.depth_b * (depth_m - self.depth_z0_m) ** 2
+
     def check(self) -> None:
         _check_range("observation.stride", self.stride, 1, 64)
         _check_range("observation.spacing_voxels", self.spacing_voxels, 0.1, 10.0)

@@ -133,7 +133,7 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
     from . import backend
     from .io import write_json
     from .pipeline import _progress, open_frames, run
-    from .posterior import Posterior
+    from .posterior import Posterior, fitted_extra_noise
     from .synthetic import DepthRenderer
 
     cfg.check()
@@ -165,8 +165,7 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
         renderers["open3d"] = DepthRenderer(o3d_mesh)
     scores = {m: _Scores() for m in ("bftaichi", *renderers)}
     o = cfg.observation
-    fit = ((report.get("solver") or {}).get("observations") or {}).get("noise_fit") or {}
-    extra = float(fit.get("sigma_extra_m") or 0.0)
+    extra = fitted_extra_noise((report.get("solver") or {}).get("observations"))
     cover = {"normalised": np.zeros(3, np.int64), "sigma_z_only": np.zeros(3, np.int64), "n": 0}
     sigma_z_sum = 0.0
     vs = post.voxel_size
@@ -181,8 +180,7 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
         both = scores["bftaichi"].add(z, D)
         r = z[both].astype(np.float64) - D[both]
         s_pred = sz[both].astype(np.float64)
-        s_meas = np.hypot(o.depth_a_m + o.depth_b * (D[both].astype(np.float64)
-                                                      - o.depth_z0_m) ** 2, extra)
+        s_meas = np.hypot(o.axial_sigma_m(D[both].astype(np.float64)), extra)
         k = np.arange(1, 4)[:, None]
         cover["normalised"] += (np.abs(r)[None] <= k * np.sqrt(s_pred ** 2 + s_meas ** 2)).sum(1)
         cover["sigma_z_only"] += (np.abs(r)[None] <= k * s_pred).sum(1)

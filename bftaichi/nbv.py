@@ -208,6 +208,8 @@ class Planner:
         from kernels.lookup import build_block_table
         from kernels.observe import Observer
 
+        from .posterior import fitted_extra_noise
+
         self.post, self.cfg, self.coverage = post, cfg, coverage
         self.K = np.asarray(K, np.float64)
         self.width, self.height = (int(v) for v in image_size)
@@ -220,8 +222,8 @@ class Planner:
         self.block_keys, self.block_table = build_block_table(post.ijk)
         self.observed = (post.weight > 0).astype(np.uint8)
         # the noise fitted to the fused frames (ObservationConfig.fit_noise) holds for new ones
-        fit = (post.observations or {}).get("noise_fit") or {}
-        self.sigma_model_m = float(np.hypot(o.sigma_model_m, fit.get("sigma_extra_m") or 0.0))
+        self.sigma_model_m = float(np.hypot(o.sigma_model_m,
+                                            fitted_extra_noise(post.observations)))
         self.observer = Observer(self.block_keys, self.block_table, len(post.ijk), vs,
                                  cfg.tsdf.trunc_m, spacing_m=o.spacing_voxels * vs,
                                  depth_a_m=o.depth_a_m, depth_b=o.depth_b,
@@ -260,8 +262,7 @@ class Planner:
         o = self.cfg.observation
         centre = 0.5 * (self.coverage.lo + self.coverage.hi)
         dist = float(np.linalg.norm(np.asarray(T_W_C)[:3, 3] - centre))
-        sigma2 = (o.depth_a_m + o.depth_b * (dist - o.depth_z0_m) ** 2) ** 2 \
-            + o.sigma_pose_m ** 2 + self.sigma_model_m ** 2
+        sigma2 = o.axial_sigma_m(dist) ** 2 + o.sigma_pose_m ** 2 + self.sigma_model_m ** 2
         f = 0.5 * (self.K[0, 0] + self.K[1, 1])
         pixels = (self.post.voxel_size * f / (max(dist, 1e-6) * o.stride)) ** 2
         w0 = max(pixels, 1e-3) / sigma2

@@ -196,7 +196,7 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_
     if warm_start is not None and len(warm_start.ijk):
         x0 = _carry_over(warm_start, band["ijk"], x0)
     mean, info = pcg(S, band["nbr"], h, x0, tol=s.tol, maxiter=s.maxiter, far=far)
-    free_stats = {"passes": 0, "anchored": 0}
+    free_stats = {"passes": 0, "anchored": 0, "free_voxels": 0}
     if p.free > 0:
         mean, info, free_stats = _free_space(S, band, h, mean, info, cfg, far)
     lap("map")
@@ -260,7 +260,7 @@ def estimate_extra_noise(frames, band: dict, cfg: Config, *, n_frames: int = 16,
         r = z[both] - D[both]
         keep = np.abs(r) < cfg.tsdf.bootstrap_trunc_m
         r_all.append(np.abs(r[keep]))
-        s_all.append(o.depth_a_m + o.depth_b * (D[both][keep] - o.depth_z0_m) ** 2)
+        s_all.append(o.axial_sigma_m(D[both][keep]))
     r = np.concatenate(r_all) if r_all else np.zeros(0)
     s = np.concatenate(s_all) if s_all else np.zeros(0)
     target = 0.6744897501960817  # median of |N(0, 1)|
@@ -281,6 +281,12 @@ def estimate_extra_noise(frames, band: dict, cfg: Config, *, n_frames: int = 16,
         e = hi
     return {"sigma_extra_m": e, "pixels": int(len(r)), "frames": int(len(picks)),
             "median_normalised_model": m0}
+
+
+def fitted_extra_noise(observations: dict | None) -> float:
+    """The extra noise ``e`` (metres) a run fitted to its frames, from its observation stats
+    (``Posterior.observations``, report.json ``solver.observations``); 0 without a fit."""
+    return float(((observations or {}).get("noise_fit") or {}).get("sigma_extra_m") or 0.0)
 
 
 def _free_space(S, band, h, mean, info, cfg: Config, far, passes: int = 4):
