@@ -258,7 +258,9 @@ def _any_bytes(original: bytes) -> st.SearchStrategy[bytes]:
 @given(data=st.data())
 def test_any_bytes_in_a_dataset_file_load_or_raise_bftaichi_error(templates, fmt, rel, data):
     payload = data.draw(_any_bytes((templates[fmt] / rel).read_bytes()), label="file content")
-    _load_with(templates, fmt, {rel: payload})
+    # frames that pass every check, or a DataError naming the file (anything else escapes and
+    # fails: a traceback from deep inside is what this guards against)
+    assert _load_with(templates, fmt, {rel: payload}) in ("ok", "DataError")
 
 
 # --------------------------------------------------------------------------------------------
@@ -432,7 +434,7 @@ def test_any_text_as_a_scene_file_gives_config_or_config_error(data):
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "scene.toml"
         path.write_bytes(data)
-        _load_config_outcome(path)
+        assert _load_config_outcome(path) in ("ok", "ConfigError")
 
 
 _key_text = st.one_of(st.sampled_from([f"{s}.{k}" for s, k in KEYS]), _text)
@@ -443,7 +445,7 @@ _key_text = st.one_of(st.sampled_from([f"{s}.{k}" for s, k in KEYS]), _text)
                       st.tuples(_key_text, st.sampled_from(["=", " = ", "=="]), _text).map("".join),
                       st.tuples(_key_text, st.sampled_from(_NUMBER_WORDS)).map("=".join)))
 def test_any_override_gives_config_or_config_error(text):
-    _load_config_outcome(None, [text])
+    assert _load_config_outcome(None, [text]) in ("ok", "ConfigError")
 
 
 _toml_str = st.one_of(
@@ -478,7 +480,7 @@ def test_random_values_for_every_key_give_config_or_config_error(entries):
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "scene.toml"
         path.write_text(tomli_w.dumps(data))
-        _load_config_outcome(path)
+        assert _load_config_outcome(path) in ("ok", "ConfigError")
 
 
 def test_every_key_round_trips_its_default_through_an_override():
