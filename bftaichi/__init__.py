@@ -28,11 +28,11 @@ from .config import Config, load_config  # noqa: E402
 from .datasets import open_dataset  # noqa: E402
 from .errors import BftaichiError, ConfigError, DataError, NoSurfaceError  # noqa: E402
 from .frame import Frame  # noqa: E402
-from .fusion import TSDFVolume  # noqa: E402
-from .pipeline import run  # noqa: E402
+from .stages.integrate import TSDFVolume  # noqa: E402
+from .running.pipeline import run  # noqa: E402
 from .posterior import Posterior  # noqa: E402
 from .reconstructor import Reconstructor  # noqa: E402
-from . import nbv  # noqa: E402
+from .planning import nbv  # noqa: E402
 
 __all__ = ["init", "Config", "load_config", "open_dataset", "Frame", "TSDFVolume",
            "Reconstructor", "Posterior", "nbv", "run",

@@ -1,7 +1,7 @@
 """The one place that initialises Taichi.
 
 Nothing in bftaichi or kernels calls ``ti.init`` at import time. Library users call
-:func:`bftaichi.init` (or let :class:`~bftaichi.fusion.TSDFVolume` call it with the defaults);
+:func:`bftaichi.init` (or let :class:`~bftaichi.stages.integrate.TSDFVolume` call it with the defaults);
 embedders that already called ``ti.init`` themselves keep their runtime: :func:`init` only
 initialises when Taichi is not running yet, or when a different arch is asked for explicitly.
 

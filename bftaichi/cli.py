@@ -47,7 +47,7 @@ _SUMMARY_KEYS = ("chamfer_l2", "accuracy_m", "completeness_m")
 
 def _print_summary(out: Path, verbose: bool = False) -> None:
     """One screen about a run, built from ``out/report.json``."""
-    from .metrics import format_table
+    from .evaluation.metrics import format_table
 
     report = json.loads((out / "report.json").read_text())
     c, s = report["counts"], report["seconds"]
@@ -131,7 +131,7 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
       bftaichi run scenes/seed_sphere.toml --set tsdf.voxel_size_m=0.01 --overwrite
     """
     from .config import load_config
-    from .pipeline import run as run_pipeline
+    from .running.pipeline import run as run_pipeline
 
     cfg = load_config(scene, _overrides(arch, sets) + (["run.strict=true"] if strict else []))
     out = Path(out or Path("out") / cfg.scene.name)
@@ -176,7 +176,7 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
       bftaichi fuse ../shared/data/rgbd/7scenes-redkitchen --voxel 0.02 --out out/kitchen
     """
     from .config import load_config
-    from .pipeline import run as run_pipeline
+    from .running.pipeline import run as run_pipeline
 
     extra = []
     if depth_scale is not None:
@@ -241,7 +241,7 @@ def evalviews(data_dir, fmt, voxel, trunc, frames, depth_max, every, held_out_st
       bftaichi evalviews ../shared/data/rgbd/7scenes-redkitchen --voxel 0.02 --out out/ev2
     """
     from .config import load_config
-    from .evalviews import evaluate_views, format_result
+    from .evaluation.evalviews import evaluate_views, format_result
 
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
                                                "auto") + list(sets))
@@ -270,7 +270,7 @@ def synth(scene, out, sets, quiet):
       bftaichi fuse data/bunny --voxel 0.003 --out out/bunny-fused
     """
     from .config import load_config
-    from .synthetic import SyntheticDataset, write_7scenes
+    from .formats.synthetic import SyntheticDataset, write_7scenes
 
     cfg = load_config(scene, sets)
     ds = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)
@@ -333,8 +333,8 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verb
     from .config import load_config
     from .errors import DataError
     from .io import write_json
-    from .nbv import nbv_summary, rank_run
-    from .pipeline import open_frames
+    from .planning.nbv import nbv_summary, rank_run
+    from .running.pipeline import open_frames
     from .posterior import Posterior
 
     out = Path(out_dir)
@@ -411,7 +411,7 @@ def scan(scene, out, policies, steps, n_candidates, sets, arch, overwrite, quiet
       bftaichi scan --policies bayes,random --steps 4 --out out/scan-quick
     """
     from .config import load_config
-    from .scan import scan as run_scan
+    from .planning.scan import scan as run_scan
 
     extra = _overrides(arch, sets)
     if steps is not None:
@@ -486,7 +486,7 @@ def view(out_dir, html_file, band, max_faces, timeout):
       bftaichi view out/bunny --html bunny.html    # one self-contained file
     """
     from .errors import BftaichiError as _Error
-    from .viz import serve, write_preview
+    from .running.viz import serve, write_preview
 
     if max_faces < 1000:
         raise _Error(f"--max-faces {max_faces}: must be at least 1000")
@@ -519,7 +519,7 @@ def eval_cmd(pred, gt, thresholds, samples, seed, as_json):
       bftaichi eval out/default/tsdf_mesh.ply data/tabletop/gt_mesh.ply --json
     """
     from .config import EvalConfig
-    from .metrics import format_table, geometry_metrics, load_mesh
+    from .evaluation.metrics import format_table, geometry_metrics, load_mesh
 
     try:
         ts = [float(t) for t in thresholds.split(",") if t.strip()]

@@ -536,7 +536,7 @@ class NBVConfig:
     """``[nbv]``: next-best-view planning (DESIGN.md 3.8) and the closed-loop ``bftaichi scan``.
 
     Candidates look at ``target`` from ``radius_m``; each is scored by the expected reduction of
-    the posterior variance its depth image would bring (:mod:`bftaichi.nbv`)."""
+    the posterior variance its depth image would bring (:mod:`bftaichi.planning.nbv`)."""
 
     enabled: bool = False
     """``bftaichi run`` ranks the candidates at the end of the run and writes ``nbv.json``."""
@@ -647,16 +647,16 @@ class RunConfig:
     Without it the mesh is written and ``report.json`` flags ``map_not_converged``."""
 
     plots: bool = True
-    """Write diagnostic PNGs into ``plots/`` at the end of a run (``bftaichi.plots``:
+    """Write diagnostic PNGs into ``plots/`` at the end of a run (``bftaichi.running.plots``:
     precision / recall and F-score against threshold, sigma histogram, calibration, PCG
     residual; those without their inputs, e.g. without ground truth, are skipped)."""
 
     preview: bool = True
-    """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.viz``)
+    """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.running.viz``)
     at the end of a run."""
 
     memory_budget: float = 0.8
-    """Peak memory a run may take (:mod:`bftaichi.resources`; a run whose estimate exceeds it
+    """Peak memory a run may take (:mod:`bftaichi.running.resources`; a run whose estimate exceeds it
     stops before allocating, naming a voxel size that fits): ``0 < x <= 1`` is a fraction of
     the available RAM (0.8 leaves a fifth to the rest of the machine), ``x > 1`` is GiB."""
 
@@ -793,7 +793,7 @@ def resolve_paths(cfg: Config, base: Path) -> Config:
     cfg.scene.data = _resolve_path(cfg.scene.data, base)
     cfg.scene.gt_mesh = _resolve_path(cfg.scene.gt_mesh, base)
     cfg.nbv.poses_file = _resolve_path(cfg.nbv.poses_file, base)
-    from .synthetic import PRIMITIVES  # local import: synthetic imports config types
+    from .formats.synthetic import PRIMITIVES  # local import: synthetic imports config types
 
     if cfg.synthetic.mesh not in PRIMITIVES:
         cfg.synthetic.mesh = _resolve_path(cfg.synthetic.mesh, base)

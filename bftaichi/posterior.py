@@ -105,7 +105,7 @@ class Posterior:
         makes zero crossings where no surface was seen (measured on the default scene: 12 % of
         vertices more than 1 cm from the truth, 92 % of those in cells with an unobserved
         corner)."""
-        from .meshing import extract_mesh, sample_field
+        from .stages.surface import extract_mesh, sample_field
 
         inside = np.ones(len(self.ijk), bool)
         vertices, faces = extract_mesh(self.ijk, self.mean, self.weight > 0, self.voxel_size)

@@ -45,7 +45,7 @@ class Reconstructor:
     """
 
     def __init__(self, config: Config | None = None):
-        from .fusion import TSDFVolume
+        from .stages.integrate import TSDFVolume
 
         self.config = (config or Config()).check()
         t, s = self.config.tsdf, self.config.scene

@@ -26,7 +26,7 @@ def main(argv=None) -> dict:
 
     import bftaichi as bf
     from bftaichi.config import parse_slice
-    from bftaichi.synthetic import SyntheticDataset
+    from bftaichi.formats.synthetic import SyntheticDataset
 
     bf.init("cpu")
     config = bf.load_config(None, args.sets)

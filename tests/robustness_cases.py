@@ -26,7 +26,7 @@ def sets(*extra) -> list[str]:
 def frames_7scenes(root: Path) -> Path:
     """A valid 3-frame 7scenes folder of the tiny tabletop (written once per root)."""
     from bftaichi.config import load_config
-    from bftaichi.synthetic import SyntheticDataset, write_7scenes
+    from bftaichi.formats.synthetic import SyntheticDataset, write_7scenes
 
     data = root / "frames"
     if not data.exists():

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 
 from bftaichi import TSDFVolume
 from bftaichi.config import SyntheticConfig
-from bftaichi.synthetic import SyntheticDataset
+from bftaichi.formats.synthetic import SyntheticDataset
 
 VOXELS = (0.01, 0.02, 0.04)
 TRUNC_VOXELS = 3  # tau_b in voxels

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def tiny():
-    from bftaichi.synthetic import SyntheticDataset
+    from bftaichi.formats.synthetic import SyntheticDataset
 
     cfg = bf.load_config(None, TINY_SCENE_SETS)
     return cfg, SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)

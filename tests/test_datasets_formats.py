@@ -26,8 +26,8 @@ from scipy.spatial.transform import Rotation
 from bftaichi.config import SyntheticConfig, load_config
 from bftaichi.datasets import FORMATS, CO3DDataset, TUMDataset, detect_format, open_dataset, pytorch3d_to_opencv
 from bftaichi.errors import ConfigError, DataError
-from bftaichi.fusion import TSDFVolume
-from bftaichi.synthetic import SyntheticDataset, write_7scenes
+from bftaichi.stages.integrate import TSDFVolume
+from bftaichi.formats.synthetic import SyntheticDataset, write_7scenes
 
 W, H = 64, 48
 FX, FY, CX, CY = 52.5, 55.0, 31.2, 23.9  # fx != fy and an off-centre principal point catch swaps

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bftaichi.cli import main
-from bftaichi.evalviews import _Scores, split_frames
+from bftaichi.evaluation.evalviews import _Scores, split_frames
 from conftest import TINY_SCENE_SETS
 
 

@@ -33,7 +33,7 @@ from PIL import Image
 from bftaichi.config import Config, load_config
 from bftaichi.datasets import open_dataset
 from bftaichi.errors import BftaichiError, ConfigError
-from bftaichi.fusion import TSDFVolume
+from bftaichi.stages.integrate import TSDFVolume
 from bftaichi.geometry import check_pose, intrinsics, look_at
 
 # Examples per target (pure-Python parsers get many, file-writing targets fewer, the Taichi

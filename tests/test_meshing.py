@@ -1,11 +1,11 @@
-"""Marching cubes over sparse voxels (bftaichi.meshing) on analytic fields."""
+"""Marching cubes over sparse voxels (bftaichi.stages.surface) on analytic fields."""
 
 import numpy as np
 import pytest
 import trimesh
 
 from bftaichi.errors import BftaichiError
-from bftaichi.meshing import extract_mesh, sample_field
+from bftaichi.stages.surface import extract_mesh, sample_field
 
 CENTRE = np.array([0.013, -0.021, 0.007])
 RADIUS = 0.3

@@ -1,4 +1,4 @@
-"""Geometry metrics (bftaichi.metrics): Chamfer, accuracy, completeness, F-score, mesh loading."""
+"""Geometry metrics (bftaichi.evaluation.metrics): Chamfer, accuracy, completeness, F-score, mesh loading."""
 
 import math
 
@@ -8,7 +8,7 @@ import trimesh
 
 from bftaichi.errors import BftaichiError, DataError
 from bftaichi.io import write_mesh_ply
-from bftaichi.metrics import (format_table, geometry_metrics, load_mesh, surface_sdf,
+from bftaichi.evaluation.metrics import (format_table, geometry_metrics, load_mesh, surface_sdf,
                               uncertainty_metrics)
 
 THRESHOLDS = (5, 10, 20, 50)

@@ -16,7 +16,7 @@ from bftaichi import nbv
 from bftaichi.cli import main
 from bftaichi.config import load_config
 from bftaichi.errors import BftaichiError
-from bftaichi.fusion import TSDFVolume
+from bftaichi.stages.integrate import TSDFVolume
 from bftaichi.posterior import Posterior, solve_posterior
 from conftest import TINY_SCENE_SETS
 
@@ -30,7 +30,7 @@ SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 3 ring views on one side,
 
 
 def solve(cfg):
-    from bftaichi.pipeline import open_frames
+    from bftaichi.running.pipeline import open_frames
 
     frames = open_frames(cfg)
     vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m)

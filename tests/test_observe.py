@@ -13,7 +13,7 @@ import pytest
 import scipy.sparse as sp
 
 from bftaichi.config import SyntheticConfig
-from bftaichi.synthetic import SyntheticDataset
+from bftaichi.formats.synthetic import SyntheticDataset
 from kernels.lookup import build_block_table
 from kernels.observe import Observer, stencil_offset
 

@@ -1,4 +1,4 @@
-"""bftaichi.plots: the run's diagnostic PNGs, and the curve data behind them."""
+"""bftaichi.running.plots: the run's diagnostic PNGs, and the curve data behind them."""
 
 import numpy as np
 import pytest
@@ -12,7 +12,7 @@ ALL_PLOTS = ["precision_recall.png", "fscore.png", "sigma_histogram.png", "calib
 
 def _tiny_run(tmp_path_factory, name, extra=()):
     import bftaichi as bf
-    from bftaichi.pipeline import load_gt_mesh, open_frames
+    from bftaichi.running.pipeline import load_gt_mesh, open_frames
 
     cfg = bf.load_config(None, [*TINY_SCENE_SETS, *extra])
     out = tmp_path_factory.mktemp(name)
@@ -33,7 +33,7 @@ def test_a_run_writes_its_plots_itself(full_run):
 
 @pytest.fixture(scope="module")
 def full_plots(full_run):
-    from bftaichi.plots import write_run_plots
+    from bftaichi.running.plots import write_run_plots
 
     report, out, gt = full_run
     return write_run_plots(report, out, gt=gt)
@@ -61,7 +61,7 @@ def test_full_run_with_ground_truth_writes_all_five(full_run, full_plots):
 def test_without_ground_truth_only_the_posterior_plots(full_run, full_plots, tmp_path):
     import shutil
 
-    from bftaichi.plots import write_run_plots
+    from bftaichi.running.plots import write_run_plots
 
     report, out, _ = full_run
     copy = tmp_path / "run"
@@ -72,7 +72,7 @@ def test_without_ground_truth_only_the_posterior_plots(full_run, full_plots, tmp
 
 
 def test_tsdf_only_run_writes_only_the_tsdf_curves(tmp_path_factory):
-    from bftaichi.plots import write_run_plots
+    from bftaichi.running.plots import write_run_plots
 
     report, out, gt = _tiny_run(tmp_path_factory, "tsdf_only", ["run.stages=tsdf_only"])
     paths = write_run_plots(report, out, gt=gt)
@@ -83,8 +83,8 @@ def test_tsdf_only_run_writes_only_the_tsdf_curves(tmp_path_factory):
 
 
 def test_curves_are_monotone_and_match_the_report_exactly(full_run):
-    from bftaichi.metrics import load_mesh, surface_distances, threshold_curves
-    from bftaichi.plots import curve_thresholds_mm
+    from bftaichi.evaluation.metrics import load_mesh, surface_distances, threshold_curves
+    from bftaichi.running.plots import curve_thresholds_mm
 
     report, out, gt = full_run
     ev = report["config"]["eval"]
@@ -107,7 +107,7 @@ def test_curves_are_monotone_and_match_the_report_exactly(full_run):
 
 
 def test_threshold_curves_by_hand():
-    from bftaichi.plots import threshold_curves
+    from bftaichi.running.plots import threshold_curves
 
     d_pg = np.array([0.001, 0.002, 0.004, 0.010])  # metres
     d_gp = np.array([0.003, 0.003, 0.020, 0.020])
@@ -118,7 +118,7 @@ def test_threshold_curves_by_hand():
 
 
 def test_calibration_uses_the_voxels_of_the_report(full_run):
-    from bftaichi.plots import band_errors, coverage_curve
+    from bftaichi.running.plots import band_errors, coverage_curve
     from bftaichi.posterior import Posterior
 
     report, out, gt = full_run
@@ -135,7 +135,7 @@ def test_calibration_uses_the_voxels_of_the_report(full_run):
 
 def test_not_a_run_folder_is_named(full_run, tmp_path):
     from bftaichi.errors import BftaichiError
-    from bftaichi.plots import write_run_plots
+    from bftaichi.running.plots import write_run_plots
 
     report, _, _ = full_run
     with pytest.raises(BftaichiError, match="missing mesh.ply, tsdf_mesh.ply: not the folder"):

@@ -131,8 +131,8 @@ def test_noise_fit_finds_the_noise_the_depth_model_misses(tmp_path):
 def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     """PriorConfig.free: data that drags voxels the TSDF saw as free below zero (as samples
     straddling an occlusion edge do) is overruled there, and only there."""
-    from bftaichi.fusion import TSDFVolume
-    from bftaichi.pipeline import open_frames
+    from bftaichi.stages.integrate import TSDFVolume
+    from bftaichi.running.pipeline import open_frames
     from bftaichi.posterior import _free_space, solve_posterior
     from kernels.band import build_band
     from kernels.pcg import apply_Q, pcg

@@ -1,4 +1,4 @@
-"""bftaichi.resources: the memory estimate scales with the voxel size, the guard names a voxel
+"""bftaichi.running.resources: the memory estimate scales with the voxel size, the guard names a voxel
 size that fits, PeakRSS sees a stage's allocation, and run.memory_budget is validated."""
 
 import subprocess
@@ -10,8 +10,8 @@ import pytest
 
 from bftaichi.config import load_config
 from bftaichi.errors import BftaichiError, ConfigError
-from bftaichi.pipeline import open_frames
-from bftaichi.resources import (BASE_BYTES, GIB, PeakRSS, ResourceError, check_memory,
+from bftaichi.running.pipeline import open_frames
+from bftaichi.running.resources import (BASE_BYTES, GIB, PeakRSS, ResourceError, check_memory,
                                 estimate_memory, memory_budget)
 from conftest import TINY_SCENE_SETS
 
@@ -108,7 +108,7 @@ def test_peak_rss_sees_a_stage_allocation():
 
 
 def test_peak_rss_without_proc_is_none(monkeypatch):
-    import bftaichi.resources as r
+    import bftaichi.running.resources as r
 
     monkeypatch.setattr(r, "_STATUS", "/nonexistent/status")
     rss = PeakRSS()
@@ -131,7 +131,7 @@ def test_memory_estimate_tool_runs_on_the_tiny_scene():
 
 
 def test_the_restated_tsdf_layout_matches_kernels_tsdf():
-    import bftaichi.resources as r
+    import bftaichi.running.resources as r
     import kernels.tsdf as t
 
     assert (r.BLOCK, r.BLOCK_VOXELS, r.FIRST_POOL_BLOCKS) == (t.BLOCK, t.BLOCK_VOXELS,

@@ -5,8 +5,8 @@ import pytest
 
 from bftaichi.config import SyntheticConfig
 from bftaichi.datasets import detect_format, open_dataset
-from bftaichi.metrics import load_mesh
-from bftaichi.synthetic import SyntheticDataset, write_7scenes
+from bftaichi.evaluation.metrics import load_mesh
+from bftaichi.formats.synthetic import SyntheticDataset, write_7scenes
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from bftaichi.config import SyntheticConfig
 from bftaichi.errors import BftaichiError, DataError
 from bftaichi.geometry import intrinsics, look_at
 from bftaichi.io import read_mesh_ply
-from bftaichi.synthetic import (PRIMITIVES, DepthRenderer, SyntheticDataset, add_noise,
+from bftaichi.formats.synthetic import (PRIMITIVES, DepthRenderer, SyntheticDataset, add_noise,
                                 intrinsics_of, make_mesh, trajectory, write_7scenes)
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"

@@ -19,7 +19,7 @@ from PIL import Image
 
 from bftaichi import viz
 from bftaichi.cli import main
-from bftaichi.viz import _colormap, _decimate, _page, _Recorder, preview_html
+from bftaichi.running.viz import _colormap, _decimate, _page, _Recorder, preview_html
 from conftest import TINY_SCENE_SETS
 
 CHROMIUM = Path(viz.CHROMIUM)
@@ -28,7 +28,7 @@ needs_browser = pytest.mark.skipif(not CHROMIUM.exists() and not os.environ.get(
 
 
 def screenshot(url: str, tmp_path: Path, name: str = "shot.png") -> np.ndarray:
-    """(H, W, 3) uint8 screenshot of ``url`` by headless Chromium (bftaichi.viz.screenshot)."""
+    """(H, W, 3) uint8 screenshot of ``url`` by headless Chromium (bftaichi.running.viz.screenshot)."""
     return np.asarray(Image.open(viz.screenshot(url, tmp_path / name)).convert("RGB"))
 
 

@@ -25,7 +25,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from bftaichi.config import SyntheticConfig
-    from bftaichi.synthetic import SyntheticDataset
+    from bftaichi.formats.synthetic import SyntheticDataset
 
     scale = args.width / 320
     cfg = SyntheticConfig(mesh=args.mesh, mesh_up="y" if args.mesh.endswith(".obj") else "z",

@@ -20,7 +20,7 @@ Fair comparison, same run, same preloaded frames:
 * the machine may be shared and noisy: both systems run interleaved, ``--repeats`` times each,
   and the best run of each is reported (all runs are printed too).
 
-Mesh agreement (needs Open3D): ``bftaichi.meshing.extract_mesh`` on our export over cells whose
+Mesh agreement (needs Open3D): ``bftaichi.stages.surface.extract_mesh`` on our export over cells whose
 corners have weight >= ``--weight-ours`` (1) against Open3D's ``extract_triangle_mesh()`` with
 its default weight threshold (``--weight-o3d``, 3); a second line compares both at the same
 threshold, so that both meshes cover the same voxels. Chamfer distance = mean d^2 both ways
@@ -165,10 +165,10 @@ def chamfer(mesh_a, mesh_b, n_samples: int, seed: int = 0) -> dict:
 
 
 def mesh_agreement(vol, vbg, voxel, w_ours, w_o3d, n_samples) -> dict:
-    """Compare ``bftaichi.meshing.extract_mesh`` on our export (cells whose 8 corners have
+    """Compare ``bftaichi.stages.surface.extract_mesh`` on our export (cells whose 8 corners have
     weight >= ``w_ours``) with Open3D's ``extract_triangle_mesh(weight_threshold=w_o3d)``."""
     import trimesh
-    from bftaichi.meshing import extract_mesh
+    from bftaichi.stages.surface import extract_mesh
 
     ex = vol.export()
     t0 = time.perf_counter()

@@ -4,7 +4,7 @@
 Runs a scene with a ground-truth mesh (default: the noisy Stanford bunny, ``scenes/bunny.toml``)
 once per variant and, over the observed band voxels within ``--near`` voxels of the true surface,
 compares the error ``e = mean - phi_true`` (``phi_true``: signed distance to the ground-truth
-mesh, :func:`bftaichi.metrics.surface_sdf`) with the posterior sigma:
+mesh, :func:`bftaichi.evaluation.metrics.surface_sdf`) with the posterior sigma:
 
 - coverage of ``|e| <= k sigma`` for k = 1, 2, 3 (a Gaussian gives 68.3 / 95.4 / 99.7 %),
 - the median of ``|e| / sigma`` (0.674 for a Gaussian; below: sigma too large),

@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import bftaichi as bf
-    from bftaichi.evalviews import evaluate_views
+    from bftaichi.evaluation.evalviews import evaluate_views
 
     lines = ["| voxel | method | median abs (mm) | mean abs (mm) | within 1 / 2 / 5 cm | "
              "completeness | sigma coverage 1 / 2 / 3 (%) |", "|---|---|---|---|---|---|---|"]

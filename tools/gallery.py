@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """Regenerate the README gallery: run a scene with next-best-view ranking, then copy its
-diagnostic plots (``plots/*.png``, :mod:`bftaichi.plots`) into ``docs/`` as
+diagnostic plots (``plots/*.png``, :mod:`bftaichi.running.plots`) into ``docs/`` as
 ``docs/<scene>_<plot>.png`` and screenshot its ``preview.html`` in headless Chromium
-(:func:`bftaichi.viz.screenshot`, the browser test's tooling) as ``docs/<scene>_preview.png``.
+(:func:`bftaichi.running.viz.screenshot`, the browser test's tooling) as ``docs/<scene>_preview.png``.
 
     python tools/gallery.py                               # scenes/bunny.toml
     python tools/gallery.py scenes/default.toml --set eval.n_samples=50000
@@ -38,7 +38,7 @@ def main(argv=None) -> int:
 
     import bftaichi as bf
     from bftaichi.io import ensure_out_dir
-    from bftaichi.viz import screenshot
+    from bftaichi.running.viz import screenshot
 
     cfg = bf.load_config(args.scene, ["nbv.enabled=true", *args.sets, "run.plots=true",
                                       "run.preview=true"])

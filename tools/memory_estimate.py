@@ -1,7 +1,7 @@
 #!/usr/bin/env python
-"""The memory estimate of bftaichi.resources against the measured peak RSS of real runs.
+"""The memory estimate of bftaichi.running.resources against the measured peak RSS of real runs.
 
-For each scene and voxel size: :func:`bftaichi.resources.estimate_memory` here, then
+For each scene and voxel size: :func:`bftaichi.running.resources.estimate_memory` here, then
 ``bftaichi.run`` in a fresh subprocess (so peaks do not mix) that reports its own peak RSS
 (``VmHWM``) at the end; prints both and their ratio as a markdown table::
 
@@ -30,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 _CHILD = r"""
 import json, sys
 from bftaichi.config import load_config
-from bftaichi.pipeline import run
-from bftaichi.resources import PeakRSS
+from bftaichi.running.pipeline import run
+from bftaichi.running.resources import PeakRSS
 scene, out, *sets = sys.argv[1:]
 cfg = load_config(scene or None, sets)
 report = run(cfg, out, overwrite=True, progress=False)
@@ -79,8 +79,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from bftaichi.config import load_config
-    from bftaichi.pipeline import open_frames
-    from bftaichi.resources import estimate_memory
+    from bftaichi.running.pipeline import open_frames
+    from bftaichi.running.resources import estimate_memory
 
     mib = 2 ** 20
     rows = []

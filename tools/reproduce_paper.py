@@ -18,7 +18,7 @@ Fig. 2 (``--fig2``): F@20mm against the anchor setting (none / boundary / all, p
 TSDF bootstrap as reference line) and 20 mm precision against recall, one point per method; it
 adds a run with ``prior.anchors=all`` and prints the numbers as a Markdown table.
 
-Fig. 3 (``--fig3``): the mean top-view utility (``bftaichi.nbv``: the best of 48 hemisphere
+Fig. 3 (``--fig3``): the mean top-view utility (``bftaichi.planning.nbv``: the best of 48 hemisphere
 candidates at 1.5 m) of the unanchored and the anchored posterior (paper model) at K = 8, 16
 and 32 probes, the mean over ``--fig3-seeds`` probe seeds, plotted against K: bftaichi's
 utility (known surface + unseen space), and its known-surface part alone (the paper's
@@ -79,9 +79,9 @@ def fig3_rows(scene: Path, sets: list[str], probes=(8, 16, 32), seeds: int = 3) 
     import numpy as np
 
     import bftaichi as bf
-    from bftaichi.fusion import TSDFVolume
-    from bftaichi.nbv import plan
-    from bftaichi.pipeline import open_frames
+    from bftaichi.stages.integrate import TSDFVolume
+    from bftaichi.planning.nbv import plan
+    from bftaichi.running.pipeline import open_frames
     from bftaichi.posterior import solve_posterior
 
     out = {"total": {}, "known": {}}
@@ -110,7 +110,7 @@ def fig3_rows(scene: Path, sets: list[str], probes=(8, 16, 32), seeds: int = 3) 
 def plot_fig3(rows: dict, path: Path) -> None:
     from matplotlib.figure import Figure
 
-    from bftaichi.plots import save_png
+    from bftaichi.running.plots import save_png
 
     fig = Figure(figsize=(10, 3.8), dpi=110)
     axes = fig.subplots(1, 2)
@@ -146,7 +146,7 @@ def plot_fig2(rows: dict[str, dict], path: Path) -> None:
     import numpy as np
     from matplotlib.figure import Figure
 
-    from bftaichi.plots import save_png
+    from bftaichi.running.plots import save_png
 
     fig = Figure(figsize=(10, 4.2), dpi=110)
     ax_f, ax_pr = fig.subplots(1, 2)

@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import bftaichi as bf
-    from bftaichi.scan import scan
+    from bftaichi.planning.scan import scan
 
     lines = ["| scene | policy | AUC F@10mm | views to F@10mm >= 0.9 | final F@10mm | "
              "final completeness (mm) | seconds |", "|---|---|---|---|---|---|---|"]

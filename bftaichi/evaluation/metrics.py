@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import BftaichiError, DataError
+from ..errors import BftaichiError, DataError
 
 __all__ = ["geometry_metrics", "surface_distances", "surface_sdf", "uncertainty_metrics",
            "load_mesh", "format_table", "DEFAULT_THRESHOLDS_MM"]

@@ -46,11 +46,11 @@ from typing import Iterator
 import numpy as np
 import trimesh
 
-from .config import SyntheticConfig
-from .errors import ConfigError, DataError
-from .frame import Frame, clean_depth
-from .geometry import check_K, check_pose, intrinsics, look_at
-from .io import atomic_write_bytes, ensure_out_dir, write_json, write_mesh_ply
+from ..config import SyntheticConfig
+from ..errors import ConfigError, DataError
+from ..frame import Frame, clean_depth
+from ..geometry import check_K, check_pose, intrinsics, look_at
+from ..io import atomic_write_bytes, ensure_out_dir, write_json, write_mesh_ply
 
 __all__ = [
     "PRIMITIVES",

@@ -7,7 +7,7 @@ ground-truth mesh, but every held-out depth frame is a measurement of the true s
 2. For each held-out frame, render depth at its pose from each reconstruction:
    - ``bftaichi``: the posterior mean's first ``mu = 0`` crossing through observed band cells
      (:func:`kernels.raycast.raycast_depth`), with the depth's standard deviation ``sigma_z``;
-   - ``tsdf``: ray casting of ``tsdf_mesh.ply`` (Embree, :class:`bftaichi.synthetic.DepthRenderer`);
+   - ``tsdf``: ray casting of ``tsdf_mesh.ply`` (Embree, :class:`bftaichi.formats.synthetic.DepthRenderer`);
    - ``open3d`` (when Open3D is installed): ray casting of the triangle mesh of Open3D's
      ``VoxelBlockGrid`` fused from the same frames, same voxel size, truncation ``alpha * tau``
      (the bootstrap's) and depth range.
@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config
-from .errors import ConfigError
+from ..config import Config
+from ..errors import ConfigError
 
 __all__ = ["evaluate_views", "split_frames"]
 
@@ -55,7 +55,7 @@ def split_frames(frames, every: int):
     held = [i for i in range(n) if i % every]
     if hasattr(frames, "subset"):
         return frames.subset(slice(0, None, every)), held
-    from .pipeline import _SlicedSynthetic
+    from ..running.pipeline import _SlicedSynthetic
 
     return _SlicedSynthetic(frames, slice(0, None, every)), held
 
@@ -130,11 +130,11 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
     from kernels.lookup import build_block_table
     from kernels.raycast import raycast_depth
 
-    from . import backend
-    from .io import write_json
-    from .pipeline import _progress, open_frames, run
-    from .posterior import Posterior, fitted_extra_noise
-    from .synthetic import DepthRenderer
+    from .. import backend
+    from ..io import write_json
+    from ..running.pipeline import _progress, open_frames, run
+    from ..posterior import Posterior, fitted_extra_noise
+    from ..formats.synthetic import DepthRenderer
 
     cfg.check()
     if cfg.run.stages != "full":

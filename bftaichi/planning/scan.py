@@ -2,7 +2,7 @@
 
 Every policy starts from the same ``nbv.initial_views`` candidate views (seeded by
 ``run.seed``) and then adds ``nbv.steps`` views, one at a time, from the same candidate set
-(:func:`bftaichi.nbv.make_candidates` around ``synthetic.look_at`` at ``synthetic.cam_radius_m``
+(:func:`bftaichi.planning.nbv.make_candidates` around ``synthetic.look_at`` at ``synthetic.cam_radius_m``
 unless ``nbv.target`` / ``nbv.radius_m`` say otherwise). After each view:
 
 1. the chosen view's noisy depth is rendered from the true mesh (the scene's noise model; view
@@ -13,7 +13,7 @@ unless ``nbv.target`` / ``nbv.radius_m`` say otherwise). After each view:
    PCG warm-started from the previous mean;
 3. ``mesh.ply``'s metrics against the ground truth are recorded (F at 10 mm among them).
 
-Policies: ``bayes`` (:class:`bftaichi.nbv.Planner` utility: expected variance reduction),
+Policies: ``bayes`` (:class:`bftaichi.planning.nbv.Planner` utility: expected variance reduction),
 ``coverage`` (the classic volumetric heuristic: the distinct unseen cells a view's rays cross
 before the predicted surface), ``farthest`` (the candidate farthest from every used view), and
 ``random`` (seeded; the mean over ``nbv.random_seeds`` seeds). Only ``bayes`` needs the
@@ -27,8 +27,8 @@ import time
 
 import numpy as np
 
-from .config import Config
-from .errors import ConfigError
+from ..config import Config
+from ..errors import ConfigError
 
 __all__ = ["POLICIES", "scan", "curve_summary"]
 
@@ -41,7 +41,7 @@ class _Scene:
 
     def __init__(self, cfg: Config):
         from .nbv import make_candidates
-        from .synthetic import DepthRenderer, intrinsics_of, make_mesh
+        from ..formats.synthetic import DepthRenderer, intrinsics_of, make_mesh
 
         sc = cfg.synthetic
         self.cfg = cfg
@@ -62,8 +62,8 @@ class _Scene:
         self._frames = {}
 
     def frame(self, c: int):
-        from .frame import Frame, clean_depth
-        from .synthetic import add_noise
+        from ..frame import Frame, clean_depth
+        from ..formats.synthetic import add_noise
 
         if c not in self._frames:
             sc, s = self.cfg.synthetic, self.cfg.scene
@@ -77,10 +77,10 @@ class _Scene:
 
 def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress) -> dict:
     """One closed loop: the views chosen and the metrics after each."""
-    from .fusion import TSDFVolume
-    from .metrics import geometry_metrics
+    from ..stages.integrate import TSDFVolume
+    from ..evaluation.metrics import geometry_metrics
     from .nbv import Planner, coverage_grid
-    from .posterior import solve_posterior
+    from ..posterior import solve_posterior
 
     cfg = scene.cfg
     vs = cfg.tsdf.voxel_size_m
@@ -169,9 +169,9 @@ def scan(cfg: Config, out_dir, policies=POLICIES, *, overwrite: bool = False,
     ``scan.json`` and ``scan.png`` into ``out_dir``; return the scan.json content.
 
     ``progress(policy, seed, record)`` is called after every step (for a progress display)."""
-    from . import backend
-    from .fusion import TSDFVolume
-    from .io import prepare_out_dir, write_json
+    from .. import backend
+    from ..stages.integrate import TSDFVolume
+    from ..io import prepare_out_dir, write_json
     from .nbv import region_of_interest
 
     cfg.check()
@@ -230,7 +230,7 @@ def plot_scan(report: dict, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io import atomic_write_bytes
+    from ..io import atomic_write_bytes
 
     fig, (ax_f, ax_c) = plt.subplots(1, 2, figsize=(10, 4), dpi=110)
     for policy, res in report["policies"].items():

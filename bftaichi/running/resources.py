@@ -19,7 +19,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from .errors import BftaichiError
+from ..errors import BftaichiError
 
 __all__ = ["ResourceError", "PeakRSS", "estimate_memory", "memory_budget", "check_memory",
            "available_memory", "suggest_voxel_size"]

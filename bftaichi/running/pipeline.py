@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from . import __version__, backend
-from .config import Config, parse_slice, save_config
-from .errors import BftaichiError, ConfigError, DataError, NoSurfaceError
-from .fusion import TSDFVolume
-from .io import prepare_out_dir, write_json, write_mesh_ply, write_npz
+from .. import __version__; from .. import backend
+from ..config import Config, parse_slice, save_config
+from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
+from ..stages.integrate import TSDFVolume
+from ..io import prepare_out_dir, write_json, write_mesh_ply, write_npz
 
 __all__ = ["open_frames", "run", "load_gt_mesh", "band_uncertainty", "near_surface_voxels"]
 
@@ -32,14 +32,14 @@ def open_frames(cfg: Config):
     """The frame source of a config: a SyntheticDataset or a recorded dataset (lazy)."""
     s = cfg.scene
     if s.source == "synthetic":
-        from .synthetic import SyntheticDataset
+        from ..formats.synthetic import SyntheticDataset
 
         ds = SyntheticDataset(cfg.synthetic, s.depth_min_m, s.depth_max_m)
         if s.frames:
             sl = parse_slice(s.frames, "scene.frames")
             ds = _SlicedSynthetic(ds, sl)
         return ds
-    from .datasets import open_dataset
+    from ..datasets import open_dataset
 
     if not Path(s.data).exists():
         raise DataError(f"scene.data: dataset folder {s.data} does not exist "
@@ -76,7 +76,7 @@ class _SlicedSynthetic:
 
 def load_gt_mesh(cfg: Config, frames) -> trimesh.Trimesh | None:
     """Ground truth for metrics: the synthetic mesh, ``scene.gt_mesh``, or the dataset's own."""
-    from .metrics import load_mesh
+    from ..evaluation.metrics import load_mesh
 
     if getattr(frames, "gt_mesh", None) is not None:
         return frames.gt_mesh
@@ -154,7 +154,7 @@ class _Staging:
     def abort(self, stage: str, error: BaseException) -> None:
         import shutil
 
-        from .io import write_json
+        from ..io import write_json
 
         shutil.rmtree(self.dir, ignore_errors=True)
         interrupted = isinstance(error, KeyboardInterrupt)
@@ -201,9 +201,9 @@ class _FrameReader:
 def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0):
     """``(mean, sigma, phi)`` of the observed band voxels (bootstrap weight > 0) within
     ``near_voxels`` voxels of the ground-truth surface, ``phi`` their true signed distance
-    (:func:`bftaichi.metrics.surface_sdf`, sampled every voxel / 4); None when fewer than 2
+    (:func:`bftaichi.evaluation.metrics.surface_sdf`, sampled every voxel / 4); None when fewer than 2
     voxels qualify."""
-    from .metrics import surface_sdf
+    from ..evaluation.metrics import surface_sdf
 
     vs = post.voxel_size
     centres = (post.ijk.astype(np.float64) + 0.5) * vs
@@ -216,10 +216,10 @@ def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0):
 
 def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict | None:
     """Calibration of the posterior against the ground-truth surface (DESIGN.md section 6):
-    :func:`bftaichi.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
+    :func:`bftaichi.evaluation.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
     true signed distance over :func:`near_surface_voxels`. None when fewer than 2 voxels
     qualify."""
-    from .metrics import uncertainty_metrics
+    from ..evaluation.metrics import uncertainty_metrics
 
     near = near_surface_voxels(post, gt, near_voxels, seed)
     if near is None:
@@ -301,7 +301,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
             "mesh.min_weight or add frames. No mesh was written.")
     post = post_mesh = None
     if cfg.run.stages == "full":
-        from .posterior import solve_posterior
+        from ..posterior import solve_posterior
 
         wait0 = reader.wait_s
         with timer("posterior"):
@@ -321,7 +321,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
     metrics, distances = {}, {}
     uncertainty = None
     if gt is not None:
-        from .metrics import metrics_from_distances, surface_distances
+        from ..evaluation.metrics import metrics_from_distances, surface_distances
 
         e = cfg.eval
         with timer("metrics"):
@@ -342,7 +342,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
         else:
             post_colors = None
             if colors is not None and len(post_mesh.vertices):
-                from .meshing import sample_field
+                from ..stages.surface import sample_field
 
                 # the TSDF's per-voxel colour at the posterior surface (nearest observed voxels)
                 cols = [sample_field(voxels["ijk"], voxels["rgb"][:, c], voxels["weight"] > 0,
@@ -395,7 +395,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
         "config": cfg.to_dict(),
     }
     if post is not None and cfg.nbv.enabled:
-        from .nbv import nbv_summary, rank_run
+        from ..planning.nbv import nbv_summary, rank_run
 
         with timer("nbv"):
             bar = (lambda it: _progress(it, len(it), "nbv", progress, "view"))

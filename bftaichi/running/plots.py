@@ -14,10 +14,10 @@ absent is skipped:
 - ``pcg_residual.png`` (posterior): the MAP PCG relative residual against iteration.
 
 "posterior" means a ``run.stages = "full"`` run (a ``"tsdf_only"`` run gets the TSDF curves of the
-first two plots and nothing else). The curves use :func:`bftaichi.metrics.surface_distances` with
+first two plots and nothing else). The curves use :func:`bftaichi.evaluation.metrics.surface_distances` with
 the run's ``eval.n_samples`` and ``eval.seed``, so at the run's ``eval.thresholds_mm`` they are the
 report's precision and recall exactly; the calibration uses the voxels and truth of
-:func:`bftaichi.pipeline.band_uncertainty`.
+:func:`bftaichi.running.pipeline.band_uncertainty`.
 
 Figures are drawn on a bare ``matplotlib.figure.Figure`` (Agg canvas, no pyplot state, so the
 caller's backend is left alone) and written atomically.
@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import BftaichiError
-from .metrics import threshold_curves
+from ..errors import BftaichiError
+from ..evaluation.metrics import threshold_curves
 
 __all__ = ["write_run_plots", "curve_thresholds_mm", "band_errors",
            "coverage_curve", "save_png"]
@@ -54,8 +54,8 @@ def curve_thresholds_mm(voxel_size_m: float, extra_mm=(), n: int = 40) -> np.nda
 
 
 def band_errors(post, gt, near_voxels: float = 1.0, seed: int = 0):
-    """The (error, sigma) pairs that :func:`bftaichi.pipeline.band_uncertainty` judges (the
-    voxels of :func:`bftaichi.pipeline.near_surface_voxels`), ``error = mean - phi``, float64
+    """The (error, sigma) pairs that :func:`bftaichi.running.pipeline.band_uncertainty` judges (the
+    voxels of :func:`bftaichi.running.pipeline.near_surface_voxels`), ``error = mean - phi``, float64
     metres; None when fewer than 2 voxels qualify."""
     from .pipeline import near_surface_voxels
 
@@ -69,7 +69,7 @@ def band_errors(post, gt, near_voxels: float = 1.0, seed: int = 0):
 def coverage_curve(error: np.ndarray, sigma: np.ndarray, k: np.ndarray):
     """For each sigma multiple ``k``: the coverage a Gaussian error would have,
     ``erf(k / sqrt 2)``, and the observed fraction with ``|error| <= k sigma`` (computed as
-    :func:`bftaichi.metrics.uncertainty_metrics` computes ``coverage@ksigma``). Returns
+    :func:`bftaichi.evaluation.metrics.uncertainty_metrics` computes ``coverage@ksigma``). Returns
     ``(expected, observed)``, float64 arrays like ``k``."""
     from scipy.special import erf
 
@@ -94,7 +94,7 @@ def _figure(figsize=(6.4, 4.4)):
 def save_png(fig, path: str | os.PathLike) -> Path:
     """Lay out matplotlib figure ``fig`` and write it to ``path`` as PNG, atomically (rendered
     into memory, then :func:`bftaichi.io.atomic_write_bytes`); return the path."""
-    from .io import atomic_write_bytes
+    from ..io import atomic_write_bytes
 
     path = Path(path)
     fig.tight_layout()
@@ -249,8 +249,8 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
         BftaichiError naming the missing files when ``out_dir`` does not hold the run, or when
         ``report`` is not a run's report.
     """
-    from .io import ensure_out_dir, read_mesh_ply
-    from .metrics import load_mesh, surface_distances
+    from ..io import ensure_out_dir, read_mesh_ply
+    from ..evaluation.metrics import load_mesh, surface_distances
 
     out = Path(out_dir)
     if not isinstance(report, dict) or not {"scene", "tsdf", "config", "solver"} <= set(report):
@@ -262,7 +262,7 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
     if missing:
         raise BftaichiError(f"{out}: missing {', '.join(missing)}: not the folder of this run")
     if solved and post is None:
-        from .posterior import Posterior
+        from ..posterior import Posterior
 
         post = Posterior.load(out / "band.npz")
     plots = ensure_out_dir(out / "plots")

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataError
+from ..errors import DataError
 
 __all__ = ["build_scene", "preview_html", "write_preview", "serve", "screenshot"]
 
@@ -107,7 +107,7 @@ def _frustums(poses, K, size, depth_m: float, colors) -> tuple[np.ndarray, np.nd
 
 
 def _load_outputs(out: Path) -> dict:
-    from .io import read_mesh_ply
+    from ..io import read_mesh_ply
 
     out = Path(out)
     if not out.is_dir():
@@ -270,7 +270,7 @@ def _page(commands: list, sigma_mm, title: str) -> str:
 def write_preview(out_dir, path=None, **kwargs) -> Path:
     """Write :func:`preview_html` of ``out_dir`` to ``path`` (default ``out_dir/preview.html``),
     atomically; return the path."""
-    from .io import atomic_write_bytes
+    from ..io import atomic_write_bytes
 
     path = Path(path) if path else Path(out_dir) / "preview.html"
     atomic_write_bytes(path, preview_html(out_dir, **kwargs).encode("utf-8"))

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import BftaichiError
+from ..errors import BftaichiError
 
 __all__ = ["extract_mesh", "sample_field"]
 

@@ -16,9 +16,9 @@ import math
 import numpy as np
 import trimesh
 
-from . import backend
-from .errors import BftaichiError, NoSurfaceError
-from .geometry import check_depth, check_K, check_pose
+from .. import backend
+from ..errors import BftaichiError, NoSurfaceError
+from ..geometry import check_depth, check_K, check_pose
 
 __all__ = ["TSDFVolume", "auto_activation_stride"]
 
@@ -123,7 +123,7 @@ class TSDFVolume:
         Returns a world-frame mesh with outward (toward free space) face orientation. Raises
         NoSurfaceError when no voxel was observed. ``voxels`` reuses an :meth:`export` result.
         """
-        from .meshing import extract_mesh, sample_field
+        from .surface import extract_mesh, sample_field
 
         v = self.export() if voxels is None else voxels
         if len(v["ijk"]) == 0:

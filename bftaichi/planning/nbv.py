@@ -45,9 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config
-from .errors import ConfigError, DataError
-from .geometry import check_pose, look_at
+from ..config import Config
+from ..errors import ConfigError, DataError
+from ..geometry import check_pose, look_at
 
 __all__ = ["sphere_candidates", "ring_candidates", "load_poses", "make_candidates",
            "candidates_around", "rank", "CoverageGrid", "region_of_interest", "Planner", "plan"]
@@ -208,7 +208,7 @@ class Planner:
         from kernels.lookup import build_block_table
         from kernels.observe import Observer
 
-        from .posterior import fitted_extra_noise
+        from ..posterior import fitted_extra_noise
 
         self.post, self.cfg, self.coverage = post, cfg, coverage
         self.K = np.asarray(K, np.float64)
@@ -336,7 +336,7 @@ def rank_run(post, cfg: Config, frames, out_dir, progress=None) -> dict:
     """Rank the candidates of ``cfg.nbv`` for a run's posterior and write ``nbv.json`` into
     ``out_dir`` (atomically); return its content. ``frames``: the run's frames (a dataset with
     ``len`` and indexing); the candidates use the first frame's intrinsics and image size."""
-    from .io import write_json
+    from ..io import write_json
 
     if len(frames) == 0:
         raise DataError("no frames: the candidates need the run's intrinsics")

@@ -1,0 +1,1 @@
+"""Frame sources: recorded dataset formats and synthetic scenes rendered with ground truth."""
