@@ -367,8 +367,6 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verb
             report = _json.loads(report_path.read_text())
         except ValueError:
             raise DataError(f"{report_path} is not valid JSON") from None
-        # the run's observation stats (noise fitted to its frames) are not in band.npz
-        post.observations = ((report.get("solver") or {}).get("observations")) or {}
     result = rank_run(post, cfg, frames, out, progress=bar)
     if report is not None:
         report["nbv"] = nbv_summary(result)

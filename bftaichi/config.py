@@ -17,14 +17,20 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
 import os
 import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .checks import check_choice, check_finite, check_range
 from .errors import ConfigError
+from .stages.band import BandConfig
+from .stages.integrate import TSDFConfig
+from .stages.observe import ObservationConfig
+from .stages.prior import PriorConfig
+from .stages.solve import SolverConfig
+from .stages.surface import MeshConfig
 
 __all__ = [
     "Config",
@@ -41,35 +47,6 @@ __all__ = [
     "NBVConfig",
     "load_config",
 ]
-
-
-def _check_range(key: str, value: float, lo: float | None = None, hi: float | None = None,
-                 lo_open: bool = False) -> None:
-    """Raise ConfigError unless lo <= value <= hi (lo < value with ``lo_open``); names ``key``."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ConfigError(f"{key} = {value} is not a finite number")
-    if lo is not None and (value <= lo if lo_open else value < lo):
-        rel = ">" if lo_open else ">="
-        raise ConfigError(f"{key} = {value} is out of range: must be {rel} {lo}")
-    if hi is not None and value > hi:
-        raise ConfigError(f"{key} = {value} is out of range: must be <= {hi}")
-
-
-def _check_finite(section: str, sub) -> None:
-    """Raise ConfigError naming the key if a float (or list of floats) field of the section
-    ``sub`` holds NaN or inf; also the fields no range check covers (e.g. a camera height)."""
-    for key, typ in typing.get_type_hints(type(sub)).items():
-        if typ is float or typ == list[float]:
-            value = getattr(sub, key)
-            for v in (value if isinstance(value, list) else [value]):
-                if isinstance(v, float) and not math.isfinite(v):
-                    raise ConfigError(f"{section}.{key} = {value} is not a finite number")
-
-
-def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ConfigError(f"{key} = {value!r} is not one of {', '.join(choices)}")
-
 
 @dataclass
 class SceneConfig:
@@ -113,17 +90,17 @@ class SceneConfig:
     (world-to-camera, inverted on load). The other formats have a fixed convention."""
 
     def check(self) -> None:
-        _check_choice("scene.source", self.source, ("synthetic", "dataset"))
+        check_choice("scene.source", self.source, ("synthetic", "dataset"))
         from .datasets import FORMATS, POSE_CONVENTIONS
 
-        _check_choice("scene.format", self.format, ("auto", *FORMATS))
-        _check_range("scene.depth_scale", self.depth_scale, 0.0)
-        _check_choice("scene.pose_convention", self.pose_convention, POSE_CONVENTIONS)
+        check_choice("scene.format", self.format, ("auto", *FORMATS))
+        check_range("scene.depth_scale", self.depth_scale, 0.0)
+        check_choice("scene.pose_convention", self.pose_convention, POSE_CONVENTIONS)
         if self.pose_convention != "T_W_C" and self.format not in ("auto", "folder"):
             raise ConfigError(f"scene.pose_convention = {self.pose_convention!r} applies to the folder "
                               f"format only; scene.format = {self.format!r} has T_W_C poses")
-        _check_range("scene.depth_min_m", self.depth_min_m, 0.0)
-        _check_range("scene.depth_max_m", self.depth_max_m, self.depth_min_m, lo_open=True)
+        check_range("scene.depth_min_m", self.depth_min_m, 0.0)
+        check_range("scene.depth_max_m", self.depth_max_m, self.depth_min_m, lo_open=True)
         if self.source == "dataset" and not self.data:
             raise ConfigError("scene.data is empty but scene.source = 'dataset': give the dataset folder")
         if self.frames:
@@ -224,81 +201,29 @@ class SyntheticConfig:
     frame is the same whatever order frames are requested in."""
 
     def check(self) -> None:
-        _check_choice("synthetic.mesh_up", self.mesh_up, ("z", "y"))
-        _check_range("synthetic.mesh_scale", self.mesh_scale, 0.0, lo_open=True)
-        _check_range("synthetic.radius_m", self.radius_m, 0.0, lo_open=True)
-        _check_choice("synthetic.trajectory", self.trajectory, ("ring", "sphere", "hemisphere", "spiral"))
-        _check_range("synthetic.n_views", self.n_views, 1, 100000)
-        _check_range("synthetic.cam_radius_m", self.cam_radius_m, 0.0, lo_open=True)
-        _check_range("synthetic.turns", self.turns, 0.0)
-        _check_range("synthetic.min_elevation_deg", self.min_elevation_deg, -90.0, 89.0)
+        check_choice("synthetic.mesh_up", self.mesh_up, ("z", "y"))
+        check_range("synthetic.mesh_scale", self.mesh_scale, 0.0, lo_open=True)
+        check_range("synthetic.radius_m", self.radius_m, 0.0, lo_open=True)
+        check_choice("synthetic.trajectory", self.trajectory, ("ring", "sphere", "hemisphere", "spiral"))
+        check_range("synthetic.n_views", self.n_views, 1, 100000)
+        check_range("synthetic.cam_radius_m", self.cam_radius_m, 0.0, lo_open=True)
+        check_range("synthetic.turns", self.turns, 0.0)
+        check_range("synthetic.min_elevation_deg", self.min_elevation_deg, -90.0, 89.0)
         if len(self.look_at) != 3:
             raise ConfigError(f"synthetic.look_at must have 3 numbers, got {self.look_at!r}")
-        _check_range("synthetic.width", self.width, 2, 16384)
-        _check_range("synthetic.height", self.height, 2, 16384)
+        check_range("synthetic.width", self.width, 2, 16384)
+        check_range("synthetic.height", self.height, 2, 16384)
         for key in ("fx", "fy"):
-            _check_range(f"synthetic.{key}", getattr(self, key), 0.0, lo_open=True)
-        _check_range("synthetic.cx", self.cx, 0.0, self.width - 1)
-        _check_range("synthetic.cy", self.cy, 0.0, self.height - 1)
-        _check_choice("synthetic.noise", self.noise, ("none", "gaussian", "kinect"))
-        _check_range("synthetic.sigma_m", self.sigma_m, 0.0)
-        _check_range("synthetic.kinect_a", self.kinect_a, 0.0)
-        _check_range("synthetic.kinect_b", self.kinect_b, 0.0)
-        _check_range("synthetic.quantization_m", self.quantization_m, 0.0, 1.0)
-        _check_range("synthetic.dropout", self.dropout, 0.0, 0.99)
-        _check_range("synthetic.seed", self.seed, 0)
-
-
-@dataclass
-class TSDFConfig:
-    """``[tsdf]``: the projective TSDF bootstrap (DESIGN.md section 3, step 1)."""
-
-    voxel_size_m: float = 0.01
-    """Voxel edge length, metres. Voxel ``ijk`` has centre ``(ijk + 0.5) * voxel_size_m``."""
-
-    trunc_m: float = 0.02
-    """Observation truncation ``tau``, metres (samples within ``+-tau`` of the measured surface).
-    Must be at least one voxel. 2 voxels by default, so the bootstrap TSDF (``alpha * tau``) uses
-    4 voxels, Open3D's usual choice: on the default scene this beats 3 voxels (F@5mm 0.911 vs
-    0.871) because a long truncation biases the projective distance on curved surfaces."""
-
-    alpha: float = 2.0
-    """The bootstrap TSDF runs with truncation ``tau_b = alpha * trunc_m`` so that the narrow band
-    ``|sdf| < alpha * tau`` exists in it (paper: alpha in [1, 3])."""
-
-    max_weight: float = 10000.0
-    """Cap of the per-voxel running weight (each observation adds 1). The default is voxblox's and
-    is effectively no cap; a small cap (e.g. 50) makes the TSDF forget old frames."""
-
-    integrate_rgb: bool = False
-    """Also fuse RGB into per-voxel colour (off by default: it costs time and memory)."""
-
-    def check(self) -> None:
-        _check_range("tsdf.voxel_size_m", self.voxel_size_m, 1e-4, 1.0)
-        if self.trunc_m < self.voxel_size_m:
-            raise ConfigError(
-                f"tsdf.trunc_m = {self.trunc_m} is smaller than one voxel "
-                f"(tsdf.voxel_size_m = {self.voxel_size_m}); use at least one voxel, typically 3-4")
-        _check_range("tsdf.trunc_m", self.trunc_m, 0.0, 10.0, lo_open=True)
-        _check_range("tsdf.alpha", self.alpha, 1.0, 3.0)
-        _check_range("tsdf.max_weight", self.max_weight, 1.0)
-
-    @property
-    def bootstrap_trunc_m(self) -> float:
-        """Truncation of the bootstrap TSDF, ``tau_b = alpha * tau``, metres."""
-        return self.alpha * self.trunc_m
-
-
-@dataclass
-class MeshConfig:
-    """``[mesh]``: marching cubes over the TSDF."""
-
-    min_weight: float = 1.0
-    """A cell produces triangles only if all 8 corner voxels have weight >= this. 1 = seen at least
-    once; raise it (Open3D uses 3, "seen from 3 viewpoints") to drop surfaces seen by few frames."""
-
-    def check(self) -> None:
-        _check_range("mesh.min_weight", self.min_weight, 0.0, lo_open=True)
+            check_range(f"synthetic.{key}", getattr(self, key), 0.0, lo_open=True)
+        check_range("synthetic.cx", self.cx, 0.0, self.width - 1)
+        check_range("synthetic.cy", self.cy, 0.0, self.height - 1)
+        check_choice("synthetic.noise", self.noise, ("none", "gaussian", "kinect"))
+        check_range("synthetic.sigma_m", self.sigma_m, 0.0)
+        check_range("synthetic.kinect_a", self.kinect_a, 0.0)
+        check_range("synthetic.kinect_b", self.kinect_b, 0.0)
+        check_range("synthetic.quantization_m", self.quantization_m, 0.0, 1.0)
+        check_range("synthetic.dropout", self.dropout, 0.0, 0.99)
+        check_range("synthetic.seed", self.seed, 0)
 
 
 @dataclass
@@ -319,216 +244,12 @@ class EvalConfig:
     whose true signed distance is at most this many voxels: the voxels that place the surface."""
 
     def check(self) -> None:
-        _check_range("eval.near_voxels", self.near_voxels, 0.0, 100.0, lo_open=True)
+        check_range("eval.near_voxels", self.near_voxels, 0.0, 100.0, lo_open=True)
         if not self.thresholds_mm:
             raise ConfigError("eval.thresholds_mm is empty")
         for t in self.thresholds_mm:
-            _check_range("eval.thresholds_mm", float(t), 0.0, lo_open=True)
-        _check_range("eval.n_samples", self.n_samples, 100, 50_000_000)
-
-
-@dataclass
-class BandConfig:
-    """``[band]``: the narrow band of unknowns around the bootstrap surface (DESIGN.md 3.2)."""
-
-    stencil: int = 26
-    """Neighbours of the GMRF prior: 6 (faces), 18 (+ edges) or 26 (+ corners), weights
-    ``1/|offset|^2``. The stored stencil has 27 points either way (the data term needs them), so
-    26 costs no extra time per Q·x."""
-
-    def check(self) -> None:
-        if self.stencil not in (6, 18, 26):
-            raise ConfigError(f"band.stencil = {self.stencil} is not one of 6, 18, 26")
-
-
-@dataclass
-class ObservationConfig:
-    """``[observation]``: depth pixels -> SDF samples (DESIGN.md 3.3)."""
-
-    stride: int = 2
-    """Use every n-th pixel in u and v (1 = all). Neighbouring pixels at stride 1 see nearly the
-    same surface point; 2 keeps the information of a 1 cm voxel grid at a quarter of the cost."""
-
-    spacing_voxels: float = 1.0
-    """Spacing of the samples along each ray within ``+-tsdf.trunc_m``, in voxels."""
-
-    depth_a_m: float = 0.0012
-    """Depth noise model ``sigma_z(z) = a + b (z - z0)^2`` (Kinect axial, Nguyen et al. 2012):
-    constant term, metres."""
-
-    depth_b: float = 0.0019
-    """Quadratic term, 1/metre."""
-
-    depth_z0_m: float = 0.4
-    """Reference depth, metres."""
-
-    cos_min: float = 0.3
-    """The depth error grows as ``1/cos(angle)`` between ray and normal, capped at
-    ``1/cos_min`` so grazing pixels still count a little."""
-
-    sigma_pose_m: float = 0.0
-    """Pose (trajectory) error folded into every sample, metres (0 for ground-truth poses)."""
-
-    sigma_model_m: float = 0.001
-    """Model error of a trilinear SDF within one voxel and of the normal estimate, metres."""
-
-    front: float = 2.0
-    """How far in front of the measured surface a pixel's samples reach, in units of the
-    observation truncation ``tau`` (>= 1; behind the surface they always reach ``tau``; 1 is the
-    paper's ``+-tau``). The band reaches ``alpha tau`` in front (default 2): samples out to there
-    observe the free space the ray crossed, as the TSDF does, so the prior alone does not set
-    those voxels (on real frames it bent them through zero: false surface in free space).
-    Measured 1 -> 2 (tools/results_table.py, posterior Chamfer): default scene 3.74e-5 ->
-    3.71e-5, bunny 2.27e-5 -> 2.26e-5, sparse far bunny 3.59e-5 -> 3.53e-5 (F@2mm 0.773 ->
-    0.788), seed sphere F@5mm 0.811 -> 0.824; redkitchen held-out views at 2 cm
-    (tools/evalviews_table.py): median depth error 8.75 -> 8.45 mm, share within 5 cm 0.874 ->
-    0.898."""
-
-    gate: float = 0.5
-    """Side gate against the bootstrap, in units of ``tau`` (0 = off): a sample behind the
-    measured surface (``y < 0``) is dropped where the TSDF interpolated at it says free space by
-    more than ``gate * tau``, and one in front (``y > 0``) where it says inside by more. Samples
-    whose trilinear cell straddles an occlusion edge (or a flying pixel at one) assert "inside"
-    in voxels that many rays saw as free; without the gate they bent the posterior through zero
-    there (surfaces fattened past their silhouettes). Only the side is tested, not the value:
-    the TSDF holds projective distances, which differ from ``y`` at oblique views. Measured
-    (tools/evalviews_table.py, tools/results_table.py) in the README's held-out-view section."""
-
-    fit_noise: bool = True
-    """Fit the per-pixel noise the depth model does not explain (pose and calibration errors of
-    a recorded trajectory) to the frames themselves before observing them
-    (:func:`bftaichi.posterior.estimate_extra_noise`), and add it to ``sigma_model_m`` in
-    quadrature. The residuals are those of the bootstrap, so its own rendering error counts
-    too: a 2 cm-voxel sphere whose noise is the Kinect model's gets ~5 mm, the same sphere with
-    1 cm Gaussian noise ~11 mm (tests/test_posterior.py); 7-Scenes redkitchen ~11 mm (README).
-    report.json: ``solver.observations.noise_fit``."""
-
-    count_once: str = "voxel"
-    """How a pixel's samples, which share one depth error, split its information ``1/sigma^2``:
-    ``pixel`` gives each of its n samples ``1/n`` (the pixel counts once in all); ``voxel``
-    gives each sample ``1/min(n, ceil(2 voxel / spacing))`` (the pixel counts about once in each
-    voxel's estimate, since only the samples in the two cells around a voxel reach it). Counting
-    the same error n times would make sigma overconfident; dividing by n made it ~2.3x too
-    conservative (tools/calibration.py: median sigma 3.3 mm for 1.5 mm RMS error); ``voxel``
-    gives 2.1 mm and a lower Chamfer distance on every shipped scene (tools/results_table.py)."""
-
-    def axial_sigma_m(self, depth_m):
-        """The axial depth noise ``a + b (D - z0)^2`` (metres) at depth ``depth_m`` (float or
-        array), without the incidence factor: the model the observation kernel uses."""
-        return self.depth_a_m + self.depth_b * (depth_m - self.depth_z0_m) ** 2
-
-    def check(self) -> None:
-        _check_range("observation.stride", self.stride, 1, 64)
-        _check_range("observation.spacing_voxels", self.spacing_voxels, 0.1, 10.0)
-        _check_range("observation.front", self.front, 1.0, 3.0)
-        _check_range("observation.gate", self.gate, 0.0, 10.0)
-        _check_range("observation.depth_a_m", self.depth_a_m, 0.0)
-        _check_range("observation.depth_b", self.depth_b, 0.0)
-        _check_range("observation.cos_min", self.cos_min, 0.01, 1.0)
-        _check_range("observation.sigma_pose_m", self.sigma_pose_m, 0.0)
-        _check_range("observation.sigma_model_m", self.sigma_model_m, 0.0)
-        _check_choice("observation.count_once", self.count_once, ("pixel", "voxel"))
-        if self.depth_a_m + self.sigma_pose_m + self.sigma_model_m <= 0:
-            raise ConfigError("observation: depth_a_m, sigma_pose_m and sigma_model_m are all 0, "
-                              "so a sample would have zero variance (infinite weight)")
-
-
-@dataclass
-class PriorConfig:
-    """``[prior]``: the GMRF prior ``lam * sum w_ij (x_i - x_j)^2 + lam_b * sum (x_i - tsdf_i)^2``.
-
-    Strengths are given per voxel (dimensionless) and divided by ``voxel_size^2`` internally, so a
-    prior means the same at every resolution: the prior standard deviation of the difference of two
-    face neighbours is ``voxel_size / sqrt(lam)``."""
-
-    lam: float = 0.01
-    """Membrane (first-order smoothness) strength per voxel^2. The membrane penalises the SDF's
-    unit slope, so a strong one bends the surface where data ends (plane edges, silhouettes) and
-    shrinks small curved objects. Measured with ``tools/results_table.py`` (posterior Chamfer,
-    lam = 0.01 / 0.1 / 1): default scene 3.8e-5 / 3.9e-5 / 5.4e-5; bunny 2.22e-5 / 2.48e-5 / -;
-    sparse far bunny 3.4e-5 / 7.7e-5 / -; the TSDF gives 6.0e-5, 2.28e-5 and 3.6e-5."""
-
-    lam_b: float = 1.0
-    """Anchor strength pulling anchored voxels to their TSDF value, per voxel^2."""
-
-    anchors: str = "boundary"
-    """Anchored voxels: ``none``, ``boundary`` (the band boundary, as in the paper) or ``all``
-    (every observed voxel, weighted by its TSDF weight)."""
-
-    outer: float = 0.0
-    """Anchor strength per voxel^2 for the *outer band*: observed voxels with ``|tsdf| >
-    tsdf.trunc_m``, which no observation sample reaches (samples lie within ``+-tau`` of the
-    measured surface), pulled to their bootstrap value (0 = off)."""
-
-    free: float = 1000.0
-    """Free-space constraint strength per voxel^2 (0 = off). A voxel the bootstrap saw as free
-    space (``tsdf > tau``, observed) cannot hold the surface: its SDF is positive. That is an
-    inequality, so it is enforced by an active set: after the MAP, every such voxel whose mean
-    is below half a voxel is anchored to its TSDF value with this strength, and the MAP is
-    solved again (warm-started) until none is left or 4 passes are done. Off the violators the
-    posterior is unchanged; the anchors are information, so they also lower those voxels'
-    variance. 1000 per voxel^2 is about the data term of 40 frames at 2 cm; 10 was too weak to
-    hold the voxels against straddling samples (tools/evalviews_table.py)."""
-
-    eps: float = 1e-4
-    """``eps * I`` per voxel^2 keeps Q positive definite where nothing else does."""
-
-    curvature: float = 0.1
-    """Second-order (curvature) prior strength ``lam2`` per voxel^2: ``lam2 sum (x_{j-e} - 2 x_j
-    + x_{j+e})^2`` over the band's second differences along each axis (0 = off, the paper's
-    model). It leaves a field of unit slope alone (only bending costs), so unlike the membrane
-    it does not pull the SDF flat. The prior standard deviation of one second difference is
-    ``voxel_size / sqrt(lam2)``; a sphere of radius R has second differences of about
-    ``voxel^2 / R``. Measured with the membrane (lam 0.01) and boundary anchors, lam2 = 0 / 0.1
-    / 0.3 / 1 (scripts in tools/): bunny Chamfer 2.16e-5 / 2.27e-5 / 2.33e-5 / 2.39e-5, F@1mm
-    0.915 / 0.928 / 0.927 / 0.921 (TSDF 2.28e-5, 0.916); sparse far bunny 3.30e-5 / 3.59e-5 /
-    3.75e-5 / 4.09e-5, F@2mm 0.742 / 0.773 / 0.770 / 0.723 (TSDF 3.64e-5, 0.663); voxels within
-    1 voxel of the bunny inside 2 sigma 99.8 / 97.3 / 95.4 / 93.4 %. Without it (membrane
-    alone), sigma is ~3x too large: the membrane is a vague prior for an SDF, since the true
-    field's neighbour differences are a full voxel."""
-
-    def check(self) -> None:
-        _check_range("prior.curvature", self.curvature, 0.0)
-        _check_range("prior.lam", self.lam, 0.0)
-        _check_range("prior.lam_b", self.lam_b, 0.0)
-        _check_range("prior.outer", self.outer, 0.0)
-        _check_range("prior.free", self.free, 0.0)
-        _check_choice("prior.anchors", self.anchors, ("none", "boundary", "all"))
-        _check_range("prior.eps", self.eps, 0.0, lo_open=True)
-
-
-@dataclass
-class SolverConfig:
-    """``[solver]``: PCG for the MAP and the probe variance (DESIGN.md 3.5-3.6)."""
-
-    tol: float = 1e-6
-    """Relative residual ``||h - Q mu|| / ||h||`` at which PCG stops."""
-
-    maxiter: int = 2000
-    """PCG iteration limit; a solve that reaches it is reported as not converged."""
-
-    probes: int = 16
-    """Number of probe vectors K for ``diag(Q^-1)``."""
-
-    probe_method: str = "coloring"
-    """``coloring`` (lattice-coloured probes: one probe per colour, voxels of a colour at least
-    2.45 voxels apart at K = 16) or ``rademacher`` (the paper). Measured against the exact
-    ``diag(Q^-1)`` on a pipeline Q (tests/test_pcg.py, tools/bench_core.py --accuracy): median
-    relative error at K = 16 near the surface 7 % (coloring) vs 22 % (rademacher)."""
-
-    probe_tol: float = 1e-4
-    """Relative residual of the probe solves (variance needs fewer digits than the mean)."""
-
-    seed: int = 0
-    """Seed of the probe vectors."""
-
-    def check(self) -> None:
-        _check_range("solver.tol", self.tol, 0.0, 1.0, lo_open=True)
-        _check_range("solver.maxiter", self.maxiter, 1, 1_000_000)
-        _check_range("solver.probes", self.probes, 1, 1024)
-        _check_choice("solver.probe_method", self.probe_method, ("rademacher", "coloring"))
-        _check_range("solver.probe_tol", self.probe_tol, 0.0, 1.0, lo_open=True)
-        _check_range("solver.seed", self.seed, 0)
+            check_range("eval.thresholds_mm", float(t), 0.0, lo_open=True)
+        check_range("eval.n_samples", self.n_samples, 100, 50_000_000)
 
 
 @dataclass
@@ -606,12 +327,12 @@ class NBVConfig:
     """``bftaichi scan``: the ``random`` policy's result is the mean over this many seeds."""
 
     def check(self) -> None:
-        _check_choice("nbv.candidates", self.candidates, ("sphere", "hemisphere", "ring", "file"))
-        _check_range("nbv.n_candidates", self.n_candidates, 1, 100_000)
-        _check_range("nbv.radius_m", self.radius_m, 0.0)
-        _check_range("nbv.radius_scale", self.radius_scale, 0.1, 1000.0)
-        _check_range("nbv.min_elevation_deg", self.min_elevation_deg, -90.0, 90.0)
-        _check_range("nbv.max_elevation_deg", self.max_elevation_deg, -90.0, 90.0)
+        check_choice("nbv.candidates", self.candidates, ("sphere", "hemisphere", "ring", "file"))
+        check_range("nbv.n_candidates", self.n_candidates, 1, 100_000)
+        check_range("nbv.radius_m", self.radius_m, 0.0)
+        check_range("nbv.radius_scale", self.radius_scale, 0.1, 1000.0)
+        check_range("nbv.min_elevation_deg", self.min_elevation_deg, -90.0, 90.0)
+        check_range("nbv.max_elevation_deg", self.max_elevation_deg, -90.0, 90.0)
         if self.min_elevation_deg > self.max_elevation_deg:
             raise ConfigError(f"nbv.min_elevation_deg = {self.min_elevation_deg} is above "
                               f"nbv.max_elevation_deg = {self.max_elevation_deg}")
@@ -619,13 +340,13 @@ class NBVConfig:
             raise ConfigError(f"nbv.target must be empty or [x, y, z], got {self.target}")
         if self.candidates == "file" and not self.poses_file:
             raise ConfigError("nbv.candidates = 'file' needs nbv.poses_file")
-        _check_range("nbv.stride", self.stride, 0, 64)
-        _check_range("nbv.eps_voxels", self.eps_voxels, 0.0, 100.0, lo_open=True)
-        _check_range("nbv.coverage_cells", self.coverage_cells, 8, 512)
-        _check_range("nbv.roi_scale", self.roi_scale, 0.1, 100.0)
-        _check_range("nbv.steps", self.steps, 1, 1000)
-        _check_range("nbv.initial_views", self.initial_views, 1, 1000)
-        _check_range("nbv.random_seeds", self.random_seeds, 1, 100)
+        check_range("nbv.stride", self.stride, 0, 64)
+        check_range("nbv.eps_voxels", self.eps_voxels, 0.0, 100.0, lo_open=True)
+        check_range("nbv.coverage_cells", self.coverage_cells, 8, 512)
+        check_range("nbv.roi_scale", self.roi_scale, 0.1, 100.0)
+        check_range("nbv.steps", self.steps, 1, 1000)
+        check_range("nbv.initial_views", self.initial_views, 1, 1000)
+        check_range("nbv.random_seeds", self.random_seeds, 1, 100)
 
 
 @dataclass
@@ -661,9 +382,9 @@ class RunConfig:
     the available RAM (0.8 leaves a fifth to the rest of the machine), ``x > 1`` is GiB."""
 
     def check(self) -> None:
-        _check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
-        _check_choice("run.stages", self.stages, ("full", "tsdf_only"))
-        _check_range("run.memory_budget", self.memory_budget, 0.0, 1e6, lo_open=True)
+        check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
+        check_choice("run.stages", self.stages, ("full", "tsdf_only"))
+        check_range("run.memory_budget", self.memory_budget, 0.0, 1e6, lo_open=True)
 
 
 @dataclass
@@ -685,7 +406,7 @@ class Config:
     def check(self) -> "Config":
         """Validate every section; raise ConfigError naming the first bad key."""
         for f in dataclasses.fields(self):
-            _check_finite(f.name, getattr(self, f.name))
+            check_finite(f.name, getattr(self, f.name))
             getattr(self, f.name).check()
         return self
 

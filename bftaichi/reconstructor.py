@@ -1,4 +1,4 @@
-"""The library's front door: a :class:`Reconstructor` you integrate frames into and ``solve``.
+"""Algorithm 1 of BayesFusion-SDF, top to bottom: the :class:`Reconstructor`.
 
 ::
 
@@ -6,11 +6,15 @@
 
     recon = bf.Reconstructor(bf.Config.from_toml("scenes/bunny.toml"))
     for frame in bf.open_dataset("path/to/frames"):
-        recon.integrate(frame.depth_m, frame.K, frame.T_W_C)
-    post = recon.solve()               # bftaichi.Posterior: mean, var, band, solver stats
-    mesh = post.extract_mesh()         # trimesh.Trimesh, vertex attribute "sigma" (metres)
+        recon.integrate(frame.depth_m, frame.K, frame.T_W_C)      # step 1
+    post = recon.solve()               # steps 2-6: bftaichi.Posterior (mean, var, band, stats)
+    mesh = post.extract_mesh()         # step 7: trimesh.Trimesh, vertex attribute "sigma" (m)
     ranked = bf.nbv.rank(post, bf.nbv.candidates_around(post, n=48), recon.K, recon.image_size)
     recon.save("out/")                 # mesh.ply, tsdf_mesh.ply, band.npz (DESIGN.md section 4)
+
+This is the one place the stages are put together: ``bftaichi run`` / ``fuse`` (the pipeline
+adds staging, reports and outputs), ``scan``, ``evalviews``, ``tools/`` and ``examples/`` all
+drive it. Each step is a module of :mod:`bftaichi.stages` owning its ``[section]``.
 
 Conventions (DESIGN.md section 2): metres; depth along the camera z axis, (H, W), 0 / NaN
 invalid; ``K`` the 3x3 OpenCV pinhole matrix; ``T_W_C`` the 4x4 camera-to-world pose.
@@ -19,6 +23,7 @@ invalid; ``K`` the 3x3 OpenCV pinhole matrix; ``T_W_C`` the 4x4 camera-to-world 
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +32,13 @@ from .config import Config
 from .errors import BftaichiError, NoSurfaceError
 from .frame import Frame, clean_depth
 from .geometry import check_K, check_pose
+from .posterior import Posterior
+from .stages.band import build_band
+from .stages.integrate import TSDFVolume
+from .stages.observe import estimate_extra_noise, make_observer, observe
+from .stages.prior import add_prior
+from .stages.solve import solve_map
+from .stages.variance import estimate_variance
 
 __all__ = ["Reconstructor"]
 
@@ -45,35 +57,43 @@ class Reconstructor:
     """
 
     def __init__(self, config: Config | None = None):
-        from .stages.integrate import TSDFVolume
-
         self.config = (config or Config()).check()
         t, s = self.config.tsdf, self.config.scene
         self.tsdf = TSDFVolume(t.voxel_size_m, t.bootstrap_trunc_m, max_weight=t.max_weight,
                                integrate_rgb=t.integrate_rgb, depth_max_m=s.depth_max_m,
                                arch=self.config.run.arch)
         self.frames: list[Frame] = []
-        self.posterior = None
+        self.posterior: Posterior | None = None
+        self._voxels = None  # the bootstrap's export, until the next frame
 
     @property
     def K(self) -> np.ndarray | None:
-        """(3, 3) intrinsics of the first frame (None before any)."""
+        """(3, 3) intrinsics of the first kept frame (None before any)."""
         return self.frames[0].K if self.frames else None
 
     @property
     def image_size(self) -> tuple[int, int] | None:
-        """(width, height) of the first frame, pixels (None before any)."""
+        """(width, height) of the first kept frame, pixels (None before any)."""
         if not self.frames:
             return None
         h, w = self.frames[0].depth_m.shape
         return w, h
 
-    def integrate(self, depth_m, K, T_W_C, rgb=None, name: str | None = None) -> None:
-        """Fuse one frame. ``depth_m`` (H, W) metres (invalid: 0, NaN, inf, negative or outside
-        ``[scene.depth_min_m, scene.depth_max_m]``); ``K`` (3, 3); ``T_W_C`` (4, 4);
-        optional ``rgb`` (H, W, 3) uint8. Raises BftaichiError naming ``name`` (default
-        ``frame-<n>``) for a bad shape, K or pose."""
-        name = name or f"frame-{len(self.frames)}"
+    @property
+    def voxels(self) -> dict:
+        """The bootstrap's observed voxels (:meth:`TSDFVolume.export`: ``ijk, tsdf, weight``)."""
+        if self._voxels is None:
+            self._voxels = self.tsdf.export()
+        return self._voxels
+
+    def integrate(self, depth_m, K, T_W_C, rgb=None, name: str | None = None, *,
+                  keep: bool = True) -> None:
+        """Step 1: fuse one frame into the TSDF bootstrap. ``depth_m`` (H, W) metres (invalid:
+        0, NaN, inf, negative or outside ``[scene.depth_min_m, scene.depth_max_m]``); ``K``
+        (3, 3); ``T_W_C`` (4, 4); optional ``rgb`` (H, W, 3) uint8. ``keep=False`` does not keep
+        the frame for :meth:`solve` (the caller then passes its own frame source to ``solve``).
+        Raises BftaichiError naming ``name`` (default ``frame-<n>``) for a bad shape, K or pose."""
+        name = name or f"frame-{self.tsdf.n_frames}"
         K = check_K(K, name)
         T_W_C = check_pose(T_W_C, name)
         depth = np.asarray(depth_m)
@@ -82,33 +102,84 @@ class Reconstructor:
         s = self.config.scene
         depth = clean_depth(depth, s.depth_min_m, s.depth_max_m)
         self.tsdf.integrate(depth, K, T_W_C, rgb=rgb, name=name)
-        self.frames.append(Frame(index=len(self.frames), name=name, depth_m=depth, K=K,
-                                 T_W_C=T_W_C, rgb=None))
+        self._voxels = None
+        if keep:
+            self.frames.append(Frame(index=len(self.frames), name=name, depth_m=depth, K=K,
+                                     T_W_C=T_W_C, rgb=None))
 
-    def solve(self, *, variance: bool = True):
-        """The posterior of everything integrated so far (:class:`bftaichi.Posterior`): the
-        band, the observations of every frame, the GMRF prior, the PCG MAP (warm-started from
-        the last solve) and, unless ``variance=False``, the probe variance. Raises
+    def solve(self, frames=None, *, variance: bool = True, frame_iter=None) -> Posterior:
+        """Steps 2-6 on everything integrated so far: the band, the observations of ``frames``
+        (default: the kept frames; a dataset with ``len`` and indexing), the GMRF prior, the PCG
+        MAP (warm-started from the last solve) and, unless ``variance=False``, the probe
+        variance (else ``var`` is ``1/Q_ii``, a lower bound). ``frame_iter(frames, desc)``
+        yields the frames of the observation pass (the pipeline's prefetching reader). Raises
         NoSurfaceError when no voxel was observed."""
-        from .posterior import solve_posterior
-
-        voxels = self.tsdf.export()
-        if len(voxels["ijk"]) == 0:
-            raise NoSurfaceError(f"no surface was observed in {len(self.frames)} frames: check "
+        cfg, frames = self.config, self.frames if frames is None else frames
+        vs, tau, o = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m, cfg.observation
+        if len(self.voxels["ijk"]) == 0:
+            raise NoSurfaceError(f"no surface was observed in {self.tsdf.n_frames} frames: check "
                                  "the depth range, the depth scale and that poses are T_W_C")
-        self.posterior = solve_posterior(self.frames, voxels, self.config,
-                                         warm_start=self.posterior, variance=variance)
+        lap = _Lap()
+        band, x0 = build_band(self.voxels, cfg.tsdf.bootstrap_trunc_m)               # step 2
+        lap("band")
+        noise = {"sigma_extra_m": 0.0}
+        if o.fit_noise:
+            noise = estimate_extra_noise(frames, band, o, vs, cfg.tsdf.bootstrap_trunc_m,
+                                         (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
+        lap("noise")
+        observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"])           # step 3
+        S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
+                                    else frames, o.stride)
+        lap("observe")
+        system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
+        lap("prior")
+        if self.posterior is not None and len(self.posterior.ijk):
+            x0 = self.posterior.warm_start(band.ijk, x0)
+        mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
+                                    voxel_size_m=vs, free=cfg.prior.free)
+        lap("map")
+        var, var_stats = estimate_variance(system, cfg.solver, band.ijk, probes=variance)  # 6
+        lap("variance")
+        self.posterior = Posterior(
+            band=band, voxel_size=vs, mean=mean, var=np.asarray(var, np.float32),
+            observation=o, trunc_m=tau, bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,
+            sigma_extra_m=float(noise["sigma_extra_m"]), solver=map_stats,
+            variance=_plain(var_stats), observations=_plain(dict(counts, noise_fit=noise)),
+            seconds=lap.seconds)
         return self.posterior
+
+    def tsdf_mesh(self):
+        """Step 7 for the bootstrap: its mesh (cells whose 8 corners have weight >=
+        ``mesh.min_weight``), the baseline ``tsdf_mesh.ply``."""
+        return self.tsdf.extract_mesh(self.config.mesh.min_weight, voxels=self.voxels)
 
     def save(self, out_dir: str | os.PathLike) -> Path:
         """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma``) and
-        ``band.npz`` into ``out_dir`` (created; files written atomically); return the folder.
-        """
+        ``band.npz`` into ``out_dir`` (created; files written atomically); return the folder."""
         from .io import ensure_out_dir, write_mesh_ply
 
         out = ensure_out_dir(out_dir)
-        mesh = self.tsdf.extract_mesh(self.config.mesh.min_weight)
+        mesh = self.tsdf_mesh()
         write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces)
         if self.posterior is not None:
             self.posterior.save(out)
         return out
+
+
+class _Lap:
+    """Seconds of each sub-stage of :meth:`Reconstructor.solve`, in order."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self.t0 = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        t1 = time.perf_counter()
+        self.seconds[name] = round(t1 - self.t0, 4)
+        self.t0 = t1
+
+
+def _plain(d: dict) -> dict:
+    """JSON-ready copy: numpy scalars to Python, arrays to lists."""
+    return {k: v.tolist() if isinstance(v, np.ndarray) else v.item()
+            if isinstance(v, np.generic) else v for k, v in d.items()}

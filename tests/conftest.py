@@ -25,3 +25,28 @@ def taichi_cpu():
     from bftaichi.backend import init
 
     init("cpu")
+
+
+def solved(cfg, frames, *, variance=True):
+    """A Reconstructor of ``cfg`` that fused ``frames`` and its posterior."""
+    from bftaichi.reconstructor import Reconstructor
+
+    recon = Reconstructor(cfg)
+    for f in frames:
+        recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
+    return recon, recon.solve(variance=variance)
+
+
+def posterior_system(recon):
+    """Steps 2-4 of ``recon``'s last solve again, by the stage functions: the band and the
+    posterior's linear system (:class:`bftaichi.stages.prior.System`), for tests that need Q."""
+    from bftaichi.stages.band import build_band
+    from bftaichi.stages.observe import make_observer, observe
+    from bftaichi.stages.prior import add_prior
+
+    cfg, post = recon.config, recon.posterior
+    vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
+    band, _ = build_band(recon.voxels, cfg.tsdf.bootstrap_trunc_m)
+    observer = make_observer(band, cfg.observation, vs, tau, post.sigma_extra_m)
+    S, h, _ = observe(observer, recon.frames, cfg.observation.stride)
+    return band, add_prior(S, h, band, cfg.prior, cfg.band.stencil, vs)

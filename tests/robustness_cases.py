@@ -265,7 +265,7 @@ def run_case(case: Case, root: Path) -> tuple[int, str]:
     elif case.inject == "sigint":
         def interrupted(*args, **kwargs):
             raise KeyboardInterrupt
-        patches.append(mock.patch("bftaichi.posterior.solve_posterior", interrupted))
+        patches.append(mock.patch("bftaichi.reconstructor.Reconstructor.solve", interrupted))
     with contextlib.ExitStack() as stack:
         for p in patches:
             stack.enter_context(p)

@@ -16,9 +16,9 @@ from bftaichi import nbv
 from bftaichi.cli import main
 from bftaichi.config import load_config
 from bftaichi.errors import BftaichiError
-from bftaichi.stages.integrate import TSDFVolume
-from bftaichi.posterior import Posterior, solve_posterior
-from conftest import TINY_SCENE_SETS
+from bftaichi.posterior import Posterior
+from bftaichi.stages.band import Band
+from conftest import TINY_SCENE_SETS, posterior_system, solved
 
 SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 3 ring views on one side, 3 cm voxels
     "synthetic.mesh=sphere", "synthetic.radius_m=0.15", "synthetic.trajectory=ring",
@@ -33,17 +33,15 @@ def solve(cfg):
     from bftaichi.running.pipeline import open_frames
 
     frames = open_frames(cfg)
-    vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m)
-    for f in frames:
-        vol.integrate(f.depth_m, f.K, f.T_W_C)
-    return frames, solve_posterior(frames, vol.export(), cfg)
+    recon, post = solved(cfg, frames)
+    return frames, recon, post
 
 
 @pytest.fixture(scope="module")
 def half_sphere():
     cfg = load_config(None, SPHERE_SETS)
-    frames, post = solve(cfg)
-    return cfg, frames, post
+    frames, recon, post = solve(cfg)
+    return cfg, frames, recon, post
 
 
 def to_csr(S, nbr, far=None):
@@ -104,8 +102,9 @@ def test_poses_file_round_trip_and_errors(tmp_path):
 def test_fast_utility_ranks_like_the_exact_variance_reduction(half_sphere):
     """Local update s' = s / (1 + s d) against diag((Q + dQ)^-1) computed exactly, over
     candidates all around the half-seen sphere (known surface only: coverage=None)."""
-    cfg, frames, post = half_sphere
-    S, nbr, far = post.precision
+    cfg, frames, recon, post = half_sphere
+    _, system = posterior_system(recon)
+    S, nbr, far = system.S, system.nbr, system.far
     n = len(S)
     assert 300 < n < 4000
     Q = to_csr(S, nbr, far).toarray()
@@ -155,9 +154,9 @@ def analytic_posterior(voxel, parts):
     keep = np.abs(sdf) < 3 * voxel
     var = np.array([p[2] for p in parts])[nearest]
     n = int(keep.sum())
-    return Posterior(ijk=ijk[keep], voxel_size=voxel, mean=sdf[keep].astype(np.float32),
-                     var=var[keep].astype(np.float32), tsdf=sdf[keep].astype(np.float32),
-                     weight=np.ones(n, np.float32), core=np.ones(n, bool))
+    band = Band.from_voxels(ijk[keep], sdf[keep], np.ones(n, np.float32))
+    return Posterior(band=band, voxel_size=voxel, mean=sdf[keep].astype(np.float32),
+                     var=var[keep].astype(np.float32))
 
 
 def test_an_occluded_view_scores_lower():
@@ -185,7 +184,7 @@ def test_an_occluded_view_scores_lower():
 
 
 def test_a_view_of_unseen_surface_beats_re_observing_a_seen_side(half_sphere):
-    cfg, frames, post = half_sphere
+    cfg, frames, _, post = half_sphere
     lo, hi = nbv.region_of_interest(post.ijk, post.voxel_size, 1.5, [0, 0, 0])
     coverage = nbv.coverage_grid(cfg, lo, hi, post.voxel_size)
     for f in frames:

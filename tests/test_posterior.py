@@ -131,25 +131,18 @@ def test_noise_fit_finds_the_noise_the_depth_model_misses(tmp_path):
 def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     """PriorConfig.free: data that drags voxels the TSDF saw as free below zero (as samples
     straddling an occlusion edge do) is overruled there, and only there."""
-    from bftaichi.stages.integrate import TSDFVolume
     from bftaichi.running.pipeline import open_frames
-    from bftaichi.posterior import _free_space, solve_posterior
-    from kernels.band import build_band
+    from bftaichi.stages.prior import System
+    from bftaichi.stages.solve import solve_map
+    from conftest import posterior_system, solved
     from kernels.pcg import apply_Q, pcg
 
     cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false"])
-    frames = open_frames(cfg)
-    vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m)
-    for f in frames:
-        vol.integrate(f.depth_m, f.K, f.T_W_C)
-    voxels = vol.export()
-    post = solve_posterior(frames, voxels, cfg, variance=False)
-    band = build_band(voxels["ijk"], voxels["tsdf"], voxels["weight"],
-                      cfg.tsdf.bootstrap_trunc_m)
-    S, nbr, far = post.precision
-    S = S.copy()
+    recon, post = solved(cfg, open_frames(cfg), variance=False)
+    band, system = posterior_system(recon)
+    S, nbr, far = system.S.copy(), system.nbr, system.far
     vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
-    free = np.flatnonzero((band["weight"] > 0) & (band["tsdf"] > tau))
+    free = np.flatnonzero(band.observed & (band.tsdf > tau))
     assert len(free) > 50 and (post.mean[free] > 0.5 * vs).all()  # consistent so far
     # straddling samples: a strong pull to -tau on a few free voxels
     hit = free[:: len(free) // 12][:12]
@@ -159,12 +152,13 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     h[hit] += c * np.float32(-tau)
     bent, info = pcg(S, nbr, h, post.mean, tol=1e-8, maxiter=2000, far=far)
     assert (bent[hit] < 0).sum() >= 8  # false surfaces in free space
-    cfg.prior.free = 1000.0
     cfg.solver.tol = 1e-8
-    fixed, info, stats = _free_space(S, band, h, bent, info, cfg, far)
+    fixed, info = solve_map(System(S=S, nbr=nbr, h=h, far=far), bent, cfg.solver, band,
+                            trunc_m=tau, voxel_size_m=vs, free=1000.0)
+    stats = info["free_space"]
     assert info["converged"] and stats["passes"] >= 1 and stats["anchored"] >= len(hit)
     assert (fixed[hit] > 0).all()
     assert (fixed[free] >= 0.5 * vs - 1e-4).sum() >= 0.98 * len(free)
     # far from the bent voxels (more than 3 voxels) the field is the unbent one
-    d = np.abs(band["ijk"][:, None, :] - band["ijk"][hit][None]).max(-1).min(1)
+    d = np.abs(band.ijk[:, None, :] - band.ijk[hit][None]).max(-1).min(1)
     np.testing.assert_allclose(fixed[d > 3], post.mean[d > 3], atol=0.02 * vs)

@@ -47,7 +47,7 @@ def test_an_interrupted_run_keeps_the_previous_outputs(tmp_path):
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
-    with mock.patch("bftaichi.posterior.solve_posterior", interrupted):
+    with mock.patch("bftaichi.reconstructor.Reconstructor.solve", interrupted):
         assert main(["run", "-q", "--overwrite", "--out", str(out), *sets()]) == 130
     after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     failure = json.loads(after.pop("failed_run.json"))

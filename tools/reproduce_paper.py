@@ -79,10 +79,8 @@ def fig3_rows(scene: Path, sets: list[str], probes=(8, 16, 32), seeds: int = 3) 
     import numpy as np
 
     import bftaichi as bf
-    from bftaichi.stages.integrate import TSDFVolume
     from bftaichi.planning.nbv import plan
     from bftaichi.running.pipeline import open_frames
-    from bftaichi.posterior import solve_posterior
 
     out = {"total": {}, "known": {}}
     for anchors in ("none", "boundary"):
@@ -95,10 +93,10 @@ def fig3_rows(scene: Path, sets: list[str], probes=(8, 16, 32), seeds: int = 3) 
                                              "nbv.n_candidates=48", "nbv.radius_m=1.5"])
                 bf.init(cfg.run.arch)
                 frames = open_frames(cfg)
-                vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m)
+                recon = bf.Reconstructor(cfg)
                 for f in frames:
-                    vol.integrate(f.depth_m, f.K, f.T_W_C)
-                post = solve_posterior(frames, vol.export(), cfg)
+                    recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name, keep=False)
+                post = recon.solve(frames)
                 result = plan(post, cfg, frames, frames.K, frames.image_size)
                 tops.append(result["best"]["utility"])
                 knowns.append(max(c["known"] for c in result["candidates"]))

@@ -20,8 +20,8 @@ ground-truth mesh, but every held-out depth frame is a measurement of the true s
    the residual is normalised by both: ``r = (z_pred - D) / sqrt(sigma_z^2 + sigma_D^2)``,
    ``sigma_D^2 = (a + b (D - z0)^2)^2 + e^2``: the configured depth noise model
    (``[observation]``, without the incidence factor) and the extra per-pixel noise ``e`` the run
-   fitted to the *fused* frames (``observation.fit_noise``, report.json
-   ``solver.observations.noise_fit``; 0 when it is off). The held-out frames play no part in
+   fitted to the *fused* frames (``observation.fit_noise``; both read back from ``band.npz``
+   with the posterior; ``e`` = 0 when the fit is off). The held-out frames play no part in
    that fit. Reported: the fraction with ``|r| <= 1, 2, 3`` (ideal 68.3 / 95.4 / 99.7 %) and
    the same for ``sigma_z`` alone.
 """
@@ -39,7 +39,6 @@ from ..errors import ConfigError
 
 __all__ = ["evaluate_views", "split_frames"]
 
-METHODS = ("bftaichi", "tsdf", "open3d")
 _BIN_M = 1e-4  # histogram bin of |error| for the median, metres
 _MAX_ERR_M = 2.0  # errors beyond this fall in the last bin (counted in the mean exactly)
 
@@ -127,13 +126,12 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
                    open3d: bool = True, overwrite: bool = False, progress: bool = True) -> dict:
     """Fuse every ``every``-th frame of ``cfg``'s scene into ``out_dir`` and score the held-out
     frames (module docstring); write ``evalviews.json`` there and return its content."""
-    from kernels.lookup import build_block_table
     from kernels.raycast import raycast_depth
 
     from .. import backend
     from ..io import write_json
     from ..running.pipeline import _progress, open_frames, run
-    from ..posterior import Posterior, fitted_extra_noise
+    from ..posterior import Posterior
     from ..formats.synthetic import DepthRenderer
 
     cfg.check()
@@ -153,8 +151,8 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
     backend.init(cfg.run.arch)
     out = Path(out_dir)
     post = Posterior.load(out / "band.npz")
-    keys, table = build_block_table(post.ijk)
-    observed = (post.weight > 0).astype(np.uint8)
+    keys, table = post.band.block_keys, post.band.block_table
+    observed = post.band.observed.astype(np.uint8)
     from .metrics import load_mesh
 
     renderers = {"tsdf": DepthRenderer(load_mesh(out / "tsdf_mesh.ply"))}
@@ -164,8 +162,7 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
     if o3d_mesh is not None and len(o3d_mesh.faces):
         renderers["open3d"] = DepthRenderer(o3d_mesh)
     scores = {m: _Scores() for m in ("bftaichi", *renderers)}
-    o = cfg.observation
-    extra = fitted_extra_noise((report.get("solver") or {}).get("observations"))
+    o, extra = post.observation, post.sigma_extra_m  # the solve's noise model, from band.npz
     cover = {"normalised": np.zeros(3, np.int64), "sigma_z_only": np.zeros(3, np.int64), "n": 0}
     sigma_z_sum = 0.0
     vs = post.voxel_size

@@ -205,38 +205,31 @@ class Planner:
 
     def __init__(self, post, cfg: Config, K, image_size, coverage: CoverageGrid | None = None,
                  depth_range: tuple | None = None):
-        from kernels.lookup import build_block_table
-        from kernels.observe import Observer
-
-        from ..posterior import fitted_extra_noise
+        from ..stages.observe import make_observer
 
         self.post, self.cfg, self.coverage = post, cfg, coverage
         self.K = np.asarray(K, np.float64)
         self.width, self.height = (int(v) for v in image_size)
         vs = post.voxel_size
-        o = cfg.observation
+        # the solve's observation model, read back with the posterior (band.npz); a posterior
+        # without it (an older band.npz) takes the config's
+        o = self.observation = post.observation or cfg.observation
+        tau = post.trunc_m or cfg.tsdf.trunc_m
         self.stride = cfg.nbv.stride or o.stride
         # information of a strided image relative to the real frames' stride (pixel count)
         self.info_scale = (self.stride / o.stride) ** 2
         self.depth_range = depth_range or (cfg.scene.depth_min_m, cfg.scene.depth_max_m)
-        self.block_keys, self.block_table = build_block_table(post.ijk)
-        self.observed = (post.weight > 0).astype(np.uint8)
+        self.observed = post.band.observed.astype(np.uint8)
         # the noise fitted to the fused frames (ObservationConfig.fit_noise) holds for new ones
-        self.sigma_model_m = float(np.hypot(o.sigma_model_m,
-                                            fitted_extra_noise(post.observations)))
-        self.observer = Observer(self.block_keys, self.block_table, len(post.ijk), vs,
-                                 cfg.tsdf.trunc_m, spacing_m=o.spacing_voxels * vs,
-                                 depth_a_m=o.depth_a_m, depth_b=o.depth_b,
-                                 depth_z0_m=o.depth_z0_m, cos_min=o.cos_min,
-                                 sigma_pose_m=o.sigma_pose_m, sigma_model_m=self.sigma_model_m,
-                                 count_once=o.count_once)
+        self.sigma_model_m = float(np.hypot(o.sigma_model_m, post.sigma_extra_m))
+        self.observer = make_observer(post.band, o, vs, tau, post.sigma_extra_m)
         eps = cfg.nbv.eps_voxels * vs
         self.omega = (post.weight > 0) & (np.abs(post.mean) <= eps)
         s = np.asarray(post.var, np.float64)
         self.s_omega = s[self.omega]
         # prior variance of an unseen voxel: its SDF, clamped to the bootstrap truncation
         # (alpha tau), could be anywhere in [-alpha tau, alpha tau]: uniform, variance (.)^2 / 3
-        self.s0 = cfg.tsdf.bootstrap_trunc_m ** 2 / 3.0
+        self.s0 = (post.bootstrap_trunc_m or cfg.tsdf.bootstrap_trunc_m) ** 2 / 3.0
         self.rho = 0.0  # Omega voxels per seen cell that holds any
         if coverage is not None and self.omega.any():
             centres = (post.ijk[self.omega] + 0.5) * vs
@@ -246,7 +239,8 @@ class Planner:
         """(H, W) float32 predicted depth of a view (0 where no surface is predicted)."""
         from kernels.raycast import raycast_depth
 
-        return raycast_depth(self.block_keys, self.block_table, self.post.mean, self.observed,
+        band = self.post.band
+        return raycast_depth(band.block_keys, band.block_table, self.post.mean, self.observed,
                              self.post.voxel_size, self.K, T_W_C, self.width, self.height,
                              self.depth_range[0], self.depth_range[1], stride=self.stride)
 
@@ -259,7 +253,7 @@ class Planner:
 
     def _prior_gain(self, T_W_C) -> float:
         """``g0 = s0 - s0 / (1 + s0 w0)`` at the candidate's distance to the region's centre."""
-        o = self.cfg.observation
+        o = self.observation
         centre = 0.5 * (self.coverage.lo + self.coverage.hi)
         dist = float(np.linalg.norm(np.asarray(T_W_C)[:3, 3] - centre))
         sigma2 = o.axial_sigma_m(dist) ** 2 + o.sigma_pose_m ** 2 + self.sigma_model_m ** 2

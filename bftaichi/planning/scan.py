@@ -77,33 +77,27 @@ class _Scene:
 
 def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress) -> dict:
     """One closed loop: the views chosen and the metrics after each."""
-    from ..stages.integrate import TSDFVolume
     from ..evaluation.metrics import geometry_metrics
+    from ..reconstructor import Reconstructor
     from .nbv import Planner, coverage_grid
-    from ..posterior import solve_posterior
 
     cfg = scene.cfg
-    vs = cfg.tsdf.voxel_size_m
-    vol = TSDFVolume(vs, cfg.tsdf.bootstrap_trunc_m, max_weight=cfg.tsdf.max_weight,
-                     depth_max_m=cfg.scene.depth_max_m, arch=cfg.run.arch)
-    coverage = coverage_grid(cfg, *roi, vs)
+    recon = Reconstructor(cfg)
+    coverage = coverage_grid(cfg, *roi, cfg.tsdf.voxel_size_m)
     rng = np.random.default_rng([cfg.run.seed, seed])
-    used, frames, steps = [], [], []
-    post = None
+    used, steps = [], []
 
     def add(c):
         f = scene.frame(c)
-        vol.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
+        recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
         coverage.mark(f.depth_m, f.K, f.T_W_C, stride=cfg.observation.stride)
         used.append(c)
-        frames.append(f)
 
     for c in scene.initial:
         add(c)
     for step in range(cfg.nbv.steps + 1):
         t0 = time.perf_counter()
-        post = solve_posterior(frames, vol.export(), cfg, warm_start=post,
-                               variance=policy == "bayes")
+        post = recon.solve(variance=policy == "bayes")
         mesh = post.extract_mesh()
         m = geometry_metrics(mesh, scene.gt, thresholds, cfg.eval.n_samples, cfg.eval.seed)
         record = {"views": len(used), "view": used[-1], F_KEY: m[F_KEY],
@@ -170,8 +164,8 @@ def scan(cfg: Config, out_dir, policies=POLICIES, *, overwrite: bool = False,
 
     ``progress(policy, seed, record)`` is called after every step (for a progress display)."""
     from .. import backend
-    from ..stages.integrate import TSDFVolume
     from ..io import prepare_out_dir, write_json
+    from ..reconstructor import Reconstructor
     from .nbv import region_of_interest
 
     cfg.check()
@@ -188,12 +182,11 @@ def scan(cfg: Config, out_dir, policies=POLICIES, *, overwrite: bool = False,
     backend.init(cfg.run.arch)
     thresholds = sorted(set(cfg.eval.thresholds_mm) | {10.0})
     # the region of interest, from the initial views' band (the same for every policy)
-    vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m,
-                     depth_max_m=cfg.scene.depth_max_m, arch=cfg.run.arch)
+    recon = Reconstructor(cfg)
     for c in scene.initial:
         f = scene.frame(c)
-        vol.integrate(f.depth_m, f.K, f.T_W_C)
-    roi = region_of_interest(vol.export()["ijk"], cfg.tsdf.voxel_size_m, cfg.nbv.roi_scale,
+        recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name, keep=False)
+    roi = region_of_interest(recon.voxels["ijk"], cfg.tsdf.voxel_size_m, cfg.nbv.roi_scale,
                              scene.target)
     results = {}
     for policy in policies:

@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .. import __version__; from .. import backend
+from .. import __version__, backend
 from ..config import Config, parse_slice, save_config
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
-from ..stages.integrate import TSDFVolume
 from ..io import prepare_out_dir, write_json, write_mesh_ply, write_npz
+from ..reconstructor import Reconstructor
 
 __all__ = ["open_frames", "run", "load_gt_mesh", "band_uncertainty", "near_surface_voxels"]
 
@@ -270,22 +270,21 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
     """The stages of :func:`run`, writing into the staging folder ``out``."""
     with timer("init"):
         backend.init(cfg.run.arch)
-    vol = TSDFVolume(cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m,
-                     max_weight=cfg.tsdf.max_weight, integrate_rgb=cfg.tsdf.integrate_rgb,
-                     depth_max_m=cfg.scene.depth_max_m, arch=cfg.run.arch)
+    recon = Reconstructor(cfg)
     reader = _FrameReader(progress)
     cameras = {"K": None, "image_size": None, "poses": []}  # for the preview
     with timer("tsdf"):
-        for frame in reader(frames, "integrate"):
-            vol.integrate(frame.depth_m, frame.K, frame.T_W_C, rgb=frame.rgb, name=frame.name)
+        for frame in reader(frames, "integrate"):  # step 1; the posterior re-reads the frames
+            recon.integrate(frame.depth_m, frame.K, frame.T_W_C, rgb=frame.rgb, name=frame.name,
+                            keep=False)
             if cameras["K"] is None:
                 cameras["K"] = np.asarray(frame.K).tolist()
                 cameras["image_size"] = [frame.depth_m.shape[1], frame.depth_m.shape[0]]
             cameras["poses"].append(np.asarray(frame.T_W_C).tolist())
     timer.seconds["tsdf"] = round(timer.seconds["tsdf"] - reader.wait_s, 4)
-    stats = vol.stats()
+    stats = recon.tsdf.stats()
     with timer("export"):
-        voxels = vol.export()
+        voxels = recon.voxels
     if len(voxels["ijk"]) == 0:
         raise NoSurfaceError(
             f"{cfg.scene.data or getattr(frames, 'name', 'the scene')}: "
@@ -293,7 +292,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
             "pixels): check the depth range (scene.depth_min_m / depth_max_m), the depth scale, and "
             "that poses are T_W_C (camera-to-world), not T_C_W. No mesh was written.")
     with timer("mesh"):
-        mesh = vol.extract_mesh(cfg.mesh.min_weight, voxels=voxels)
+        mesh = recon.tsdf_mesh()
     if len(mesh.faces) == 0:
         raise NoSurfaceError(
             f"{len(voxels['ijk'])} voxels were observed but no cell has all 8 corners with weight >= "
@@ -301,11 +300,9 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
             "mesh.min_weight or add frames. No mesh was written.")
     post = post_mesh = None
     if cfg.run.stages == "full":
-        from ..posterior import solve_posterior
-
         wait0 = reader.wait_s
         with timer("posterior"):
-            post = solve_posterior(frames, voxels, cfg, frame_iter=reader)
+            post = recon.solve(frames, frame_iter=reader)  # steps 2-6
         timer.seconds["posterior"] = round(timer.seconds["posterior"] - (reader.wait_s - wait0), 4)
         if cfg.run.strict and not post.solver["converged"]:
             m = post.solver
@@ -316,7 +313,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                 "raise solver.maxiter, check the scene, or run without --strict (the mesh is "
                 "then written and flagged in report.json)")
         with timer("mesh"):
-            post_mesh = post.extract_mesh()
+            post_mesh = post.extract_mesh()  # step 7
     timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
     metrics, distances = {}, {}
     uncertainty = None
@@ -352,8 +349,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
             write_mesh_ply(out / "mesh.ply", post_mesh.vertices, post_mesh.faces,
                            vertex_attrs={"sigma": post_mesh.vertex_attributes["sigma"]},
                            vertex_colors=post_colors)
-            write_npz(out / "band.npz", ijk=post.ijk, voxel_size=vs32, mean=post.mean,
-                      var=post.var, tsdf=post.tsdf, weight=post.weight)
+            write_npz(out / "band.npz", **post.band_arrays())
         save_config(cfg, out / "config.toml")
     report = {
         "status": "complete",

@@ -16,11 +16,27 @@ and the same position from both chunks and is merged (a closed surface stays wat
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from ..checks import check_range
 from ..errors import BftaichiError
 
-__all__ = ["extract_mesh", "sample_field"]
+__all__ = ["MeshConfig", "extract_mesh", "sample_field"]
+
+
+@dataclass
+class MeshConfig:
+    """``[mesh]``: marching cubes over the TSDF."""
+
+    min_weight: float = 1.0
+    """A cell produces triangles only if all 8 corner voxels have weight >= this. 1 = seen at least
+    once; raise it (Open3D uses 3, "seen from 3 viewpoints") to drop surfaces seen by few frames."""
+
+    def check(self) -> None:
+        check_range("mesh.min_weight", self.min_weight, 0.0, lo_open=True)
+
 
 #: Default chunk edge in cells: a 129^3 float32 chunk is 8.6 MB, small enough for any machine
 #: and large enough that the per-chunk overhead of skimage stays negligible.

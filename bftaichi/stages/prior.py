@@ -1,0 +1,95 @@
+"""Step 4 of Algorithm 1: the GMRF prior added to the data term (DESIGN.md section 3.4), giving
+the posterior's linear system ``Q mu = h`` on the band's stencil."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..checks import check_choice, check_range
+
+__all__ = ["PriorConfig", "System", "add_prior"]
+
+
+@dataclass
+class PriorConfig:
+    """``[prior]``: the GMRF prior ``lam * sum w_ij (x_i - x_j)^2 + lam_b * sum (x_i - tsdf_i)^2``
+    (+ a curvature term and the free-space constraint).
+
+    Every strength is per voxel^2 (dimensionless per voxel) and divided by ``voxel_size^2``
+    internally, so a prior means the same at every resolution: the prior standard deviation of
+    the difference of two face neighbours is ``voxel_size / sqrt(lam)``. Measurements behind the
+    defaults: docs/measurements.md."""
+
+    lam: float = 0.01
+    """Membrane (first-order smoothness) strength, per voxel^2. The membrane penalises the
+    SDF's unit slope, so a strong one bends the surface where data ends (plane edges,
+    silhouettes) and shrinks small curved objects: it is kept weak."""
+
+    lam_b: float = 1.0
+    """Anchor strength pulling anchored voxels to their TSDF value, per voxel^2."""
+
+    anchors: str = "boundary"
+    """Anchored voxels: ``none``, ``boundary`` (the band boundary, as in the paper) or ``all``
+    (every observed voxel, weighted by its TSDF weight)."""
+
+    free: float = 1000.0
+    """Free-space constraint strength, per voxel^2 (0 = off). A voxel the bootstrap saw as free
+    space (``tsdf > tau``, observed) cannot hold the surface: its SDF is positive. That is an
+    inequality, so it is enforced by an active set (:mod:`.solve`): after the MAP, every such
+    voxel whose mean is below half a voxel is anchored to its TSDF value with this strength,
+    and the MAP is solved again. 1000 per voxel^2 is about the data term of 40 frames at 2 cm;
+    10 was too weak to hold the voxels against straddling samples."""
+
+    eps: float = 1e-4
+    """``eps * I``, per voxel^2: keeps Q positive definite where nothing else does."""
+
+    curvature: float = 0.1
+    """Second-order (curvature) prior strength ``lam2``, per voxel^2: ``lam2 sum (x_{j-e} - 2
+    x_j + x_{j+e})^2`` over the band's second differences along each axis (0 = off, the paper's
+    model). It leaves a field of unit slope alone (only bending costs), so unlike the membrane
+    it does not pull the SDF flat. The prior standard deviation of one second difference is
+    ``voxel_size / sqrt(lam2)``; a sphere of radius R has second differences of about
+    ``voxel^2 / R``. Without it (membrane alone) sigma was ~3x too large: the membrane is a
+    vague prior for an SDF, whose neighbour differences are a full voxel."""
+
+    def check(self) -> None:
+        check_range("prior.curvature", self.curvature, 0.0)
+        check_range("prior.lam", self.lam, 0.0)
+        check_range("prior.lam_b", self.lam_b, 0.0)
+        check_range("prior.free", self.free, 0.0)
+        check_choice("prior.anchors", self.anchors, ("none", "boundary", "all"))
+        check_range("prior.eps", self.eps, 0.0, lo_open=True)
+
+
+@dataclass(eq=False)
+class System:
+    """The posterior's linear system ``Q mu = h`` in the stencil layout of :mod:`kernels.pcg`:
+    ``S`` (N, 27) float32 entries of Q at the offsets ``{-1, 0, 1}^3``, ``nbr`` (N, 27) the band's
+    neighbour table, ``far`` Q's entries at offsets +-2 (curvature prior; None without it),
+    ``h`` (N,) float32."""
+
+    S: np.ndarray
+    nbr: np.ndarray
+    h: np.ndarray
+    far: tuple | None = None
+
+
+def add_prior(S: np.ndarray, h_data: np.ndarray, band, prior: PriorConfig, stencil: int,
+              voxel_size_m: float) -> System:
+    """Add the prior of ``prior`` (stencil 6/18/26) to the data term ``S`` (in place) and
+    ``h_data``; return the :class:`System`. ``band``: the :class:`~.band.Band`."""
+    from kernels.prior import add_curvature_prior
+    from kernels.prior import add_prior as add_membrane
+
+    scale = voxel_size_m ** 2  # strengths are per voxel^2
+    b0 = np.zeros(len(band), np.float32)
+    add_membrane(S, b0, band.nbr, band.tsdf, band.weight, lam=prior.lam / scale,
+                 lam_b=prior.lam_b / scale, eps=prior.eps / scale, stencil=stencil,
+                 anchors=prior.anchors)
+    far = None
+    if prior.curvature > 0:
+        far = add_curvature_prior(S, band.nbr, lam2=prior.curvature / scale)
+    h = (h_data.astype(np.float64) + b0).astype(np.float32)
+    return System(S=S, nbr=band.nbr, h=h, far=far)
