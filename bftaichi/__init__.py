@@ -21,8 +21,6 @@ import os as _os
 # Taichi prints a banner on import; keep library output quiet unless the user asks for it.
 _os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 
-__version__ = "0.1.0"
-
 from .backend import init  # noqa: E402
 from .config import Config, load_config  # noqa: E402
 from .datasets import open_dataset  # noqa: E402
@@ -32,6 +30,7 @@ from .stages.integrate import TSDFVolume  # noqa: E402
 from .running.pipeline import run  # noqa: E402
 from .posterior import Posterior  # noqa: E402
 from .reconstructor import Reconstructor  # noqa: E402
+from .version import __version__  # noqa: E402
 from .planning import nbv  # noqa: E402
 
 __all__ = ["init", "Config", "load_config", "open_dataset", "Frame", "TSDFVolume",

@@ -107,6 +107,11 @@ class SceneConfig:
             parse_slice(self.frames, "scene.frames")
 
 
+PRIMITIVES = ("sphere", "box", "cylinder", "torus", "tabletop")
+"""The built-in meshes ``synthetic.mesh`` names (:mod:`bftaichi.formats.synthetic` builds them);
+any other value is a mesh file path."""
+
+
 @dataclass
 class SyntheticConfig:
     """``[synthetic]``: a scene rendered from a mesh, with ground truth."""
@@ -176,19 +181,20 @@ class SyntheticConfig:
 
     noise: str = "kinect"
     """Depth noise model: ``none``, ``gaussian`` (``sigma_m``), or ``kinect`` (axial
-    ``sigma_z(z) = kinect_a + kinect_b * (z - kinect_z0)^2``)."""
+    ``sigma_z(z) = depth_a_m + depth_b * (z - depth_z0_m)^2``)."""
 
     sigma_m: float = 0.002
     """Standard deviation of the ``gaussian`` model, metres."""
 
-    kinect_a: float = 0.0012
-    """Kinect axial noise constant term, metres (Nguyen et al. 2012)."""
+    depth_a_m: float = 0.0012
+    """``kinect`` axial noise ``sigma_z(z) = a + b (z - z0)^2`` (Nguyen et al. 2012): constant
+    term ``a``, metres. The same names as the model the posterior assumes, ``[observation]``."""
 
-    kinect_b: float = 0.0019
-    """Kinect axial noise quadratic term, 1/metre."""
+    depth_b: float = 0.0019
+    """``kinect`` noise quadratic term ``b``, 1/metre."""
 
-    kinect_z0: float = 0.4
-    """Kinect axial noise reference depth, metres."""
+    depth_z0_m: float = 0.4
+    """``kinect`` noise reference depth ``z0``, metres."""
 
     quantization_m: float = 0.001
     """Depth quantisation step, metres (0 = none). 0.001 mimics depth stored in millimetres."""
@@ -219,8 +225,8 @@ class SyntheticConfig:
         check_range("synthetic.cy", self.cy, 0.0, self.height - 1)
         check_choice("synthetic.noise", self.noise, ("none", "gaussian", "kinect"))
         check_range("synthetic.sigma_m", self.sigma_m, 0.0)
-        check_range("synthetic.kinect_a", self.kinect_a, 0.0)
-        check_range("synthetic.kinect_b", self.kinect_b, 0.0)
+        check_range("synthetic.depth_a_m", self.depth_a_m, 0.0)
+        check_range("synthetic.depth_b", self.depth_b, 0.0)
         check_range("synthetic.quantization_m", self.quantization_m, 0.0, 1.0)
         check_range("synthetic.dropout", self.dropout, 0.0, 0.99)
         check_range("synthetic.seed", self.seed, 0)
@@ -376,15 +382,20 @@ class RunConfig:
     """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.running.viz``)
     at the end of a run."""
 
-    memory_budget: float = 0.8
-    """Peak memory a run may take (:mod:`bftaichi.running.resources`; a run whose estimate exceeds it
-    stops before allocating, naming a voxel size that fits): ``0 < x <= 1`` is a fraction of
-    the available RAM (0.8 leaves a fifth to the rest of the machine), ``x > 1`` is GiB."""
+    memory_fraction: float = 0.8
+    """Peak memory a run may take, as a fraction (0 to 1) of the available RAM
+    (:mod:`bftaichi.running.resources`: a run whose estimate exceeds it stops before allocating,
+    naming a voxel size that fits). 0.8 leaves a fifth to the rest of the machine. Ignored when
+    ``memory_budget_gib`` is set."""
+
+    memory_budget_gib: float = 0.0
+    """Peak memory a run may take, GiB, whatever is available (0 = use ``memory_fraction``)."""
 
     def check(self) -> None:
         check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
         check_choice("run.stages", self.stages, ("full", "tsdf_only"))
-        check_range("run.memory_budget", self.memory_budget, 0.0, 1e6, lo_open=True)
+        check_range("run.memory_fraction", self.memory_fraction, 0.0, 1.0, lo_open=True)
+        check_range("run.memory_budget_gib", self.memory_budget_gib, 0.0, 1e6)
 
 
 @dataclass
@@ -450,6 +461,18 @@ def _coerce(key: str, value, typ):
     raise ConfigError(f"{key} = {value!r} has the wrong type: expected {tname}")
 
 
+RENAMED = {
+    "synthetic.kinect_a": "renamed to synthetic.depth_a_m (metres)",
+    "synthetic.kinect_b": "renamed to synthetic.depth_b (1/metre)",
+    "synthetic.kinect_z0": "renamed to synthetic.depth_z0_m (metres)",
+    "run.memory_budget": "split into run.memory_fraction (0 to 1 of the available RAM) and "
+                         "run.memory_budget_gib (GiB)",
+    "prior.outer": "removed: the outer-band anchor measured worse than none; the free-space "
+                   "constraint prior.free covers the voxels it was for",
+}
+"""Keys of earlier versions: ``section.key`` -> what became of it (the error a user sees)."""
+
+
 def _unknown(kind: str, name: str, known: typing.Iterable[str]) -> ConfigError:
     known = sorted(known)
     close = difflib.get_close_matches(name, known, n=1)
@@ -463,6 +486,8 @@ def _set(cfg: Config, section: str, key: str, value) -> None:
         raise _unknown("section", section, sections)
     sub = getattr(cfg, section)
     types = _field_types(sub)
+    if f"{section}.{key}" in RENAMED:
+        raise ConfigError(f"{section}.{key} was {RENAMED[f'{section}.{key}']}")
     if key not in types:
         raise _unknown(f"key in [{section}]", key, types)
     setattr(sub, key, _coerce(f"{section}.{key}", value, types[key]))
@@ -514,8 +539,6 @@ def resolve_paths(cfg: Config, base: Path) -> Config:
     cfg.scene.data = _resolve_path(cfg.scene.data, base)
     cfg.scene.gt_mesh = _resolve_path(cfg.scene.gt_mesh, base)
     cfg.nbv.poses_file = _resolve_path(cfg.nbv.poses_file, base)
-    from .formats.synthetic import PRIMITIVES  # local import: synthetic imports config types
-
     if cfg.synthetic.mesh not in PRIMITIVES:
         cfg.synthetic.mesh = _resolve_path(cfg.synthetic.mesh, base)
     return cfg

@@ -1,5 +1,5 @@
 """bftaichi.running.resources: the memory estimate scales with the voxel size, the guard names a voxel
-size that fits, PeakRSS sees a stage's allocation, and run.memory_budget is validated."""
+size that fits, PeakRSS sees a stage's allocation, and run.memory_fraction / memory_budget_gib are validated."""
 
 import subprocess
 import sys
@@ -55,7 +55,7 @@ def test_check_memory_names_a_voxel_size_that_fits():
     v = err.voxel_size_m
     assert v is not None and v > 0.015
     assert f"tsdf.voxel_size_m = {v:g} would need" in str(err)
-    assert "exceeds the budget" in str(err) and "run.memory_budget" in str(err)
+    assert "exceeds the budget" in str(err) and "run.memory_fraction" in str(err)
     # the suggestion fits when estimated on its own
     cfg_fit, _ = _tiny(v)
     cfg_fit.tsdf.trunc_m = cfg.tsdf.trunc_m if cfg.tsdf.trunc_m >= v else v
@@ -73,20 +73,31 @@ def test_check_memory_says_when_no_voxel_size_fits():
 
 
 def test_memory_budget_conventions():
-    cfg, _ = _tiny(0.03, "run.memory_budget=2")
+    cfg, _ = _tiny(0.03, "run.memory_budget_gib=2")
     assert memory_budget(cfg) == 2 * GIB
-    cfg.run.memory_budget = 0.5
+    cfg.run.memory_budget_gib = 0.0
+    cfg.run.memory_fraction = 0.5
     b = memory_budget(cfg)
     if Path("/proc/meminfo").exists():
         assert 0 < b
-        cfg.run.memory_budget = 1.0
+        cfg.run.memory_fraction = 1.0
         assert abs(memory_budget(cfg) - 2 * b) <= 2 * 2 ** 20 + 0.01 * b  # RAM moves a little
 
 
-@pytest.mark.parametrize("value", ["0", "-0.5", "nan", "inf", "true", "'big'"])
-def test_bad_memory_budget_is_a_config_error(value):
-    with pytest.raises(ConfigError, match="run.memory_budget"):
-        load_config(None, [f"run.memory_budget={value}"])
+@pytest.mark.parametrize("key,value", [("memory_fraction", v) for v in
+                                       ["0", "-0.5", "1.5", "nan", "inf", "true", "'big'"]]
+                         + [("memory_budget_gib", v) for v in ["-1", "nan", "'big'"]])
+def test_bad_memory_budget_is_a_config_error(key, value):
+    with pytest.raises(ConfigError, match=f"run.{key}"):
+        load_config(None, [f"run.{key}={value}"])
+
+
+@pytest.mark.parametrize("old,new", [("run.memory_budget=2", "run.memory_budget_gib"),
+                                     ("synthetic.kinect_a=0.001", "synthetic.depth_a_m"),
+                                     ("prior.outer=10", "prior.free")])
+def test_a_renamed_key_names_its_successor(old, new):
+    with pytest.raises(ConfigError, match=new.replace(".", r"\.")):
+        load_config(None, [old])
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from bftaichi import viz
+from bftaichi.running import viz
 from bftaichi.cli import main
 from bftaichi.running.viz import _colormap, _decimate, _page, _Recorder, preview_html
 from conftest import TINY_SCENE_SETS

@@ -5,7 +5,7 @@ VoxelBlockGrid, fused from every other frame and judged on the frames in between
 
     python tools/evalviews_table.py                                  # redkitchen, 2 cm and 1 cm
     python tools/evalviews_table.py --voxels 0.04 --frames 0:100     # a quick look
-    python tools/evalviews_table.py --set prior.outer=10 --markdown ev.md
+    python tools/evalviews_table.py --set prior.free=100 --markdown ev.md
 
 Columns: median and mean absolute depth error on the pixels where both the method and the
 measurement have a depth, the fraction within 1 / 2 / 5 cm, completeness (predicted share of

@@ -25,7 +25,8 @@ import numpy as np
 from ..errors import BftaichiError, DataError
 
 __all__ = ["geometry_metrics", "surface_distances", "surface_sdf", "uncertainty_metrics",
-           "load_mesh", "format_table", "DEFAULT_THRESHOLDS_MM"]
+           "load_mesh", "format_table", "DEFAULT_THRESHOLDS_MM", "near_surface_voxels",
+           "band_uncertainty"]
 
 #: Default F-score thresholds (mm), as in the BayesFusion-SDF paper.
 DEFAULT_THRESHOLDS_MM = (5, 10, 20, 50)
@@ -375,3 +376,30 @@ def format_table(rows: dict[str, dict], keys: list[str] | None = None) -> str:
     for label, line in zip(labels, cells):
         lines.append("  ".join([label.ljust(label_w)] + [c.rjust(w) for c, w in zip(line, col_w)]))
     return "\n".join(lines)
+
+
+def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0):
+    """``(mean, sigma, phi)`` of the observed band voxels (bootstrap weight > 0) within
+    ``near_voxels`` voxels of the ground-truth surface, ``phi`` their true signed distance
+    (:func:`bftaichi.evaluation.metrics.surface_sdf`, sampled every voxel / 4); None when fewer than 2
+    voxels qualify."""
+    vs = post.voxel_size
+    centres = (post.ijk.astype(np.float64) + 0.5) * vs
+    phi, valid = surface_sdf(gt, centres, spacing_m=vs / 4, seed=seed)
+    near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
+    if np.count_nonzero(near) < 2:
+        return None
+    return post.mean[near], post.sigma[near], phi[near]
+
+
+def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict | None:
+    """Calibration of the posterior against the ground-truth surface (DESIGN.md section 6):
+    :func:`bftaichi.evaluation.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
+    true signed distance over :func:`near_surface_voxels`. None when fewer than 2 voxels
+    qualify."""
+    near = near_surface_voxels(post, gt, near_voxels, seed)
+    if near is None:
+        return None
+    out = uncertainty_metrics(*near)
+    out["near_voxels"] = near_voxels
+    return out

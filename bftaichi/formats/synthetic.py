@@ -46,7 +46,7 @@ from typing import Iterator
 import numpy as np
 import trimesh
 
-from ..config import SyntheticConfig
+from ..config import PRIMITIVES, SyntheticConfig
 from ..errors import ConfigError, DataError
 from ..frame import Frame, clean_depth
 from ..geometry import check_K, check_pose, intrinsics, look_at
@@ -63,7 +63,6 @@ __all__ = [
     "write_7scenes",
 ]
 
-PRIMITIVES = ("sphere", "box", "cylinder", "torus", "tabletop")
 """Names of the built-in meshes; any other ``synthetic.mesh`` value is a mesh file path."""
 
 # Tessellation: faceting error (sagitta) well below 1 mm at radius 0.3 m.
@@ -318,7 +317,7 @@ def add_noise(depth_m: np.ndarray, cfg: SyntheticConfig, rng: np.random.Generato
     Steps, in order:
 
     1. noise (``cfg.noise``): ``none``; ``gaussian``, ``z + N(0, sigma_m^2)``; ``kinect``, axial
-       ``z + N(0, sigma_z(z)^2)`` with ``sigma_z(z) = kinect_a + kinect_b * (z - kinect_z0)^2``
+       ``z + N(0, sigma_z(z)^2)`` with ``sigma_z(z) = depth_a_m + depth_b * (z - depth_z0_m)^2``
        (Nguyen et al. 2012);
     2. quantisation to the nearest multiple of ``quantization_m`` (0 = off);
     3. dropout: each valid pixel is set to 0 with probability ``dropout``.
@@ -337,7 +336,7 @@ def add_noise(depth_m: np.ndarray, cfg: SyntheticConfig, rng: np.random.Generato
     if cfg.noise == "gaussian":
         z = z + cfg.sigma_m * gauss
     elif cfg.noise == "kinect":
-        sigma = cfg.kinect_a + cfg.kinect_b * (z - cfg.kinect_z0) ** 2
+        sigma = cfg.depth_a_m + cfg.depth_b * (z - cfg.depth_z0_m) ** 2
         z = z + sigma * gauss
     elif cfg.noise != "none":
         raise ConfigError(f"synthetic.noise = {cfg.noise!r} is not one of none, gaussian, kinect")

@@ -19,13 +19,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .. import __version__, backend
+from .. import backend
 from ..config import Config, parse_slice, save_config
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
 from ..io import prepare_out_dir, write_json, write_mesh_ply, write_npz
 from ..reconstructor import Reconstructor
+from ..version import __version__
 
-__all__ = ["open_frames", "run", "load_gt_mesh", "band_uncertainty", "near_surface_voxels"]
+__all__ = ["open_frames", "run", "load_gt_mesh"]
 
 
 def open_frames(cfg: Config):
@@ -198,37 +199,6 @@ class _FrameReader:
                 yield frame
 
 
-def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0):
-    """``(mean, sigma, phi)`` of the observed band voxels (bootstrap weight > 0) within
-    ``near_voxels`` voxels of the ground-truth surface, ``phi`` their true signed distance
-    (:func:`bftaichi.evaluation.metrics.surface_sdf`, sampled every voxel / 4); None when fewer than 2
-    voxels qualify."""
-    from ..evaluation.metrics import surface_sdf
-
-    vs = post.voxel_size
-    centres = (post.ijk.astype(np.float64) + 0.5) * vs
-    phi, valid = surface_sdf(gt, centres, spacing_m=vs / 4, seed=seed)
-    near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
-    if np.count_nonzero(near) < 2:
-        return None
-    return post.mean[near], post.sigma[near], phi[near]
-
-
-def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict | None:
-    """Calibration of the posterior against the ground-truth surface (DESIGN.md section 6):
-    :func:`bftaichi.evaluation.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
-    true signed distance over :func:`near_surface_voxels`. None when fewer than 2 voxels
-    qualify."""
-    from ..evaluation.metrics import uncertainty_metrics
-
-    near = near_surface_voxels(post, gt, near_voxels, seed)
-    if near is None:
-        return None
-    out = uncertainty_metrics(*near)
-    out["near_voxels"] = near_voxels
-    return out
-
-
 def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         progress: bool = True, frames=None) -> dict:
     """Run the pipeline of ``cfg`` and write its outputs into ``out_dir``; return the report.
@@ -318,7 +288,8 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
     metrics, distances = {}, {}
     uncertainty = None
     if gt is not None:
-        from ..evaluation.metrics import metrics_from_distances, surface_distances
+        from ..evaluation.metrics import (band_uncertainty, metrics_from_distances,
+                                          surface_distances)
 
         e = cfg.eval
         with timer("metrics"):

@@ -17,7 +17,7 @@ absent is skipped:
 first two plots and nothing else). The curves use :func:`bftaichi.evaluation.metrics.surface_distances` with
 the run's ``eval.n_samples`` and ``eval.seed``, so at the run's ``eval.thresholds_mm`` they are the
 report's precision and recall exactly; the calibration uses the voxels and truth of
-:func:`bftaichi.running.pipeline.band_uncertainty`.
+:func:`bftaichi.evaluation.metrics.band_uncertainty`.
 
 Figures are drawn on a bare ``matplotlib.figure.Figure`` (Agg canvas, no pyplot state, so the
 caller's backend is left alone) and written atomically.
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BftaichiError
-from ..evaluation.metrics import threshold_curves
+from ..evaluation.metrics import near_surface_voxels, threshold_curves
 
 __all__ = ["write_run_plots", "curve_thresholds_mm", "band_errors",
            "coverage_curve", "save_png"]
@@ -54,10 +54,9 @@ def curve_thresholds_mm(voxel_size_m: float, extra_mm=(), n: int = 40) -> np.nda
 
 
 def band_errors(post, gt, near_voxels: float = 1.0, seed: int = 0):
-    """The (error, sigma) pairs that :func:`bftaichi.running.pipeline.band_uncertainty` judges (the
-    voxels of :func:`bftaichi.running.pipeline.near_surface_voxels`), ``error = mean - phi``, float64
+    """The (error, sigma) pairs that :func:`bftaichi.evaluation.metrics.band_uncertainty` judges (the
+    voxels of :func:`bftaichi.evaluation.metrics.near_surface_voxels`), ``error = mean - phi``, float64
     metres; None when fewer than 2 voxels qualify."""
-    from .pipeline import near_surface_voxels
 
     near = near_surface_voxels(post, gt, near_voxels, seed)
     if near is None:

@@ -3,7 +3,7 @@ not fit, and measure the peak resident memory of each stage.
 
 * :func:`estimate_memory` predicts the peak from the scene's extent and the voxel size, from a
   subsample of the frames (no Taichi, no TSDF: numpy on a few hundred thousand points).
-* :func:`memory_budget` turns ``run.memory_budget`` into bytes.
+* :func:`memory_budget` turns ``run.memory_budget_gib`` or ``run.memory_fraction`` into bytes.
 * :func:`check_memory` raises :class:`ResourceError` when the estimate exceeds the budget,
   naming a voxel size that fits.
 * :class:`PeakRSS` records the peak resident set size (``VmHWM``) of each stage of a run.
@@ -26,7 +26,7 @@ __all__ = ["ResourceError", "PeakRSS", "estimate_memory", "memory_budget", "chec
 
 
 class ResourceError(BftaichiError):
-    """The run would need more memory than ``run.memory_budget`` allows.
+    """The run would need more memory than its budget (:func:`memory_budget`) allows.
 
     Attributes: ``estimate`` (:func:`estimate_memory`'s dict), ``budget`` (bytes),
     ``voxel_size_m`` (a voxel size whose estimate fits, or None)."""
@@ -425,26 +425,25 @@ def available_memory() -> int | None:
 
 
 def memory_budget(cfg) -> int | None:
-    """The run's memory budget in bytes from ``cfg.run.memory_budget`` (x):
-
-    * ``0 < x <= 1``: that fraction of :func:`available_memory` (default 0.8: a fifth is left
-      to the rest of the machine); None when the available memory is unknown (no check);
-    * ``x > 1``: x GiB, whatever is free (``run.memory_budget = 64`` allows 64 GiB).
+    """The run's memory budget in bytes: ``run.memory_budget_gib`` GiB, whatever is free, when
+    set; else ``run.memory_fraction`` of :func:`available_memory` (default 0.8: a fifth is left
+    to the rest of the machine), None when the available memory is unknown (no check).
 
     The estimate it is compared with is the process's whole peak RSS, including what the process
     already holds, so a fraction budget errs on the safe side by that much.
     """
-    x = float(cfg.run.memory_budget)
-    if x > 1:
-        return int(x * GIB)
+    r = cfg.run
+    if r.memory_budget_gib > 0:
+        return int(r.memory_budget_gib * GIB)
     avail = available_memory()
-    return None if avail is None else int(x * avail)
+    return None if avail is None else int(r.memory_fraction * avail)
 
 
 def _describe_budget(cfg, budget: int) -> str:
-    x = float(cfg.run.memory_budget)
-    what = (f"run.memory_budget = {x:g} GiB" if x > 1
-            else f"{x * 100:g} % of the available RAM, run.memory_budget = {x:g}")
+    r = cfg.run
+    what = (f"run.memory_budget_gib = {r.memory_budget_gib:g}" if r.memory_budget_gib > 0
+            else f"{r.memory_fraction * 100:g} % of the available RAM, run.memory_fraction = "
+                 f"{r.memory_fraction:g}")
     return f"the budget {_gib(budget)} ({what})"
 
 
@@ -526,7 +525,8 @@ def check_memory(cfg, frames, *, budget: int | None = None) -> dict:
                      else f" with tsdf.trunc_m = {v_fit:g}")
             msg += (f"tsdf.voxel_size_m = {v_fit:g}{trunc} would need ~"
                     f"{_gib(est_fit['peak_bytes'])}. ")
-        msg += "Set run.memory_budget (a fraction of the available RAM, or GiB if > 1) to override."
+        msg += ("Set run.memory_fraction (of the available RAM) or run.memory_budget_gib to "
+                "override.")
         raise ResourceError(msg, estimate=est, budget=budget,
                             voxel_size_m=None if fit is None else fit[0])
     est["seconds"] = round(time.perf_counter() - t0, 4)
