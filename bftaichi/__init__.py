@@ -25,7 +25,7 @@ __version__ = "0.1.0"
 
 from .backend import init  # noqa: E402
 from .config import Config, load_config  # noqa: E402
-from .datasets import open_dataset  # noqa: E402
+from .formats import open_dataset  # noqa: E402
 from .errors import BftaichiError, ConfigError, DataError, NoSurfaceError  # noqa: E402
 from .frame import Frame  # noqa: E402
 from .fusion import TSDFVolume  # noqa: E402

@@ -114,7 +114,7 @@ class SceneConfig:
 
     def check(self) -> None:
         _check_choice("scene.source", self.source, ("synthetic", "dataset"))
-        from .datasets import FORMATS, POSE_CONVENTIONS
+        from .formats import FORMATS, POSE_CONVENTIONS
 
         _check_choice("scene.format", self.format, ("auto", *FORMATS))
         _check_range("scene.depth_scale", self.depth_scale, 0.0)

@@ -133,9 +133,9 @@ from typing import ClassVar
 import numpy as np
 from PIL import Image
 
-from .errors import ConfigError, DataError
-from .frame import Frame, clean_depth
-from .geometry import check_K, check_pose, intrinsics
+from ..errors import ConfigError, DataError
+from ..frame import Frame, clean_depth
+from ..geometry import check_K, check_pose, intrinsics
 
 __all__ = [
     "Dataset",
