@@ -23,7 +23,7 @@ _os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 
 from .backend import init  # noqa: E402
 from .config import Config, load_config  # noqa: E402
-from .datasets import open_dataset  # noqa: E402
+from .formats import open_dataset  # noqa: E402
 from .errors import BftaichiError, ConfigError, DataError, NoSurfaceError  # noqa: E402
 from .frame import Frame  # noqa: E402
 from .stages.integrate import TSDFVolume  # noqa: E402

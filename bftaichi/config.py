@@ -65,7 +65,7 @@ class SceneConfig:
     format: str = "auto"
     """Dataset layout: ``auto`` (detect), ``7scenes`` (also 3DMatch and ``seq-XX/`` folders),
     ``bfsdf``, ``tum``, ``replica`` (NICE-SLAM export), ``scannet`` (SensReader export), ``co3d``,
-    ``redwood`` (Open3D ``.log``) or ``folder`` (generic); see :mod:`bftaichi.datasets`."""
+    ``redwood`` (Open3D ``.log``) or ``folder`` (generic); see :mod:`bftaichi.formats`."""
 
     frames: str = ""
     """Python-style slice of the frames to use, e.g. ``"0:100:2"``; empty = all frames."""
@@ -91,7 +91,7 @@ class SceneConfig:
 
     def check(self) -> None:
         check_choice("scene.source", self.source, ("synthetic", "dataset"))
-        from .datasets import FORMATS, POSE_CONVENTIONS
+        from .formats import FORMATS, POSE_CONVENTIONS
 
         check_choice("scene.format", self.format, ("auto", *FORMATS))
         check_range("scene.depth_scale", self.depth_scale, 0.0)

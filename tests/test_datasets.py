@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from bftaichi.datasets import (
+from bftaichi.formats import (
     FORMATS,
     BFSDFDataset,
     Dataset,

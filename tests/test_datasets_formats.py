@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from bftaichi.config import SyntheticConfig, load_config
-from bftaichi.datasets import FORMATS, CO3DDataset, TUMDataset, detect_format, open_dataset, pytorch3d_to_opencv
+from bftaichi.formats import FORMATS, CO3DDataset, TUMDataset, detect_format, open_dataset, pytorch3d_to_opencv
 from bftaichi.errors import ConfigError, DataError
 from bftaichi.stages.integrate import TSDFVolume
 from bftaichi.formats.synthetic import SyntheticDataset, write_7scenes

@@ -31,7 +31,7 @@ from hypothesis.extra import numpy as hnp
 from PIL import Image
 
 from bftaichi.config import Config, load_config
-from bftaichi.datasets import open_dataset
+from bftaichi.formats import open_dataset
 from bftaichi.errors import BftaichiError, ConfigError
 from bftaichi.stages.integrate import TSDFVolume
 from bftaichi.geometry import check_pose, intrinsics, look_at

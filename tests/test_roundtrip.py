@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bftaichi.config import SyntheticConfig
-from bftaichi.datasets import detect_format, open_dataset
+from bftaichi.formats import detect_format, open_dataset
 from bftaichi.evaluation.metrics import load_mesh
 from bftaichi.formats.synthetic import SyntheticDataset, write_7scenes
 

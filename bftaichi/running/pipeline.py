@@ -40,7 +40,7 @@ def open_frames(cfg: Config):
             sl = parse_slice(s.frames, "scene.frames")
             ds = _SlicedSynthetic(ds, sl)
         return ds
-    from ..datasets import open_dataset
+    from ..formats import open_dataset
 
     if not Path(s.data).exists():
         raise DataError(f"scene.data: dataset folder {s.data} does not exist "
