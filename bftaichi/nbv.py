@@ -151,7 +151,7 @@ class CoverageGrid:
 
     def __init__(self, lo, hi, cells: int, voxel_size: float, trunc_m: float,
                  miss_depth_m: float = 0.0):
-        from kernels.raycast import CoverageGrid as _Grid
+        from kernels.coverage import CoverageGrid as _Grid
 
         lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
         cell = max(float((hi - lo).max()) / cells, voxel_size)
@@ -229,7 +229,8 @@ class Planner:
                                  depth_a_m=o.depth_a_m, depth_b=o.depth_b,
                                  depth_z0_m=o.depth_z0_m, cos_min=o.cos_min,
                                  sigma_pose_m=o.sigma_pose_m, sigma_model_m=self.sigma_model_m,
-                                 count_once=o.count_once)
+                                 count_once=o.count_once, front_m=cfg.tsdf.trunc_m,
+                                 gate_m=0.0)
         eps = cfg.nbv.eps_voxels * vs
         self.omega = (post.weight > 0) & (np.abs(post.mean) <= eps)
         s = np.asarray(post.var, np.float64)

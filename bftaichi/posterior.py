@@ -131,8 +131,10 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_
     variance ``1/Q_ii``, a lower bound, and ``variance`` stats say so).
     """
     from kernels.band import build_band
+    from kernels.layout import CENTRE
     from kernels.observe import Observer
-    from kernels.pcg import pcg, probe_variance
+    from kernels.pcg import pcg
+    from kernels.probes import probe_variance
     from kernels.prior import add_curvature_prior, add_prior
 
     seconds = {}
@@ -183,7 +185,7 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_
         # would set them, and between occluding edges it can bend them through zero (false
         # surface in space the TSDF saw as free). Anchor them to the bootstrap.
         outer = (band["weight"] > 0) & (np.abs(band["tsdf"]) > cfg.tsdf.trunc_m)
-        S[outer, 13] += np.float32(p.outer / vs ** 2)
+        S[outer, CENTRE] += np.float32(p.outer / vs ** 2)
         b0[outer] += np.float32(p.outer / vs ** 2) * band["tsdf"][outer]
     far = None  # Q's entries at offsets +-2 (curvature prior only)
     if p.curvature > 0:
@@ -200,7 +202,7 @@ def solve_posterior(frames, voxels: dict, cfg: Config, frame_iter=None, *, warm_
     if p.free > 0:
         mean, info, free_stats = _free_space(S, band, h, mean, info, cfg, far)
     lap("map")
-    floor = (1.0 / S[:, 13].astype(np.float64)).astype(np.float32)
+    floor = (1.0 / S[:, CENTRE].astype(np.float64)).astype(np.float32)
     if variance:
         var, vinfo = probe_variance(S, band["nbr"], n_probes=s.probes, seed=s.seed,
                                     method=s.probe_method, tol=s.probe_tol, maxiter=s.maxiter,
@@ -294,6 +296,7 @@ def _free_space(S, band, h, mean, info, cfg: Config, far, passes: int = 4):
     the violators ``tsdf > tau``, ``mean < voxel / 2`` to their TSDF value in ``S`` and ``h``
     (in place) and re-solve, up to ``passes`` times. Returns the final ``(mean, info, stats)``;
     ``info`` is the last solve's and its iterations are summed over the solves."""
+    from kernels.layout import CENTRE
     from kernels.pcg import pcg
 
     vs, s = cfg.tsdf.voxel_size_m, cfg.solver
@@ -308,7 +311,7 @@ def _free_space(S, band, h, mean, info, cfg: Config, far, passes: int = 4):
             n_pass -= 1
             break
         active |= viol
-        S[viol, 13] += k
+        S[viol, CENTRE] += k
         h[viol] += k * band["tsdf"][viol]
         mean, info = pcg(S, band["nbr"], h, mean, tol=s.tol, maxiter=s.maxiter, far=far)
         iterations += info["iterations"]
@@ -319,7 +322,7 @@ def _free_space(S, band, h, mean, info, cfg: Config, far, passes: int = 4):
 
 def _carry_over(prev: Posterior, ijk: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """``x0`` with the voxels of ``ijk`` that ``prev`` also holds set to ``prev.mean``."""
-    from kernels.lookup import block_key_np
+    from kernels.layout import block_key_np
 
     def key(a):  # one int64 per voxel, ascending in the bands' lexicographic order
         return block_key_np(np.asarray(a, np.int64))

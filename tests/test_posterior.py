@@ -135,7 +135,8 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     from bftaichi.pipeline import open_frames
     from bftaichi.posterior import _free_space, solve_posterior
     from kernels.band import build_band
-    from kernels.pcg import apply_Q, pcg
+    from kernels.pcg import pcg
+    from kernels.stencil import apply_Q
 
     cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false"])
     frames = open_frames(cfg)
