@@ -149,7 +149,7 @@ class Posterior:
     def warm_start(self, ijk: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """``x0`` with the voxels of ``ijk`` that this posterior also holds set to its mean
         (a PCG start when frames are added)."""
-        from kernels.lookup import block_key_np
+        from kernels.layout import block_key_np
 
         k_prev = block_key_np(np.asarray(self.ijk, np.int64))  # one int64 per voxel, ascending
         k_new = block_key_np(np.asarray(ijk, np.int64))

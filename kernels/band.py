@@ -24,7 +24,7 @@ metres clamped to +-tau_b, ``weight`` (M,) float32) :func:`build_band` makes
   ==============  ==========  ================================================================
 
 Working layout (freed on return): the *candidate blocks* are the 8^3 blocks holding core voxels
-and their 26 neighbouring blocks, sorted by :func:`kernels.lookup.block_key_np`; with
+and their 26 neighbouring blocks, sorted by :func:`kernels.layout.block_key_np`; with
 ``dilation <= 7`` every voxel the dilation or the fill can reach lies in one of them. Each
 candidate block owns 512 consecutive *cells* (cell ``c = slot * 512 + 64 a + 8 b + c_`` for local
 voxel (a, b, c_)), dense per-cell arrays hold the input values and the dilation level, and
@@ -45,33 +45,13 @@ dilation's concurrent writes all store the same value into a cell no thread of t
 import numpy as np
 import taichi as ti
 
-from .lookup import BLOCK, KEY_BIAS, block_key, block_key_np, find_block
+from .funcs import block_row
+from .layout import (BLOCK, BLOCK_VOXELS, CENTRE, KEY_BIAS, block_key_np, block_key_steps,
+                     decode_keys, stencil_offset)
 
-BLOCK_VOXELS = BLOCK ** 3
 MAX_DILATION = BLOCK - 1  # candidate blocks reach 8 voxels past a core voxel; the fill reads d+1
 #: |ijk| bound: the block of ijk and its neighbouring blocks stay inside lookup's key range.
 MAX_ABS_IJK = (KEY_BIAS - 2) * BLOCK
-
-OFFSETS = np.array([(o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1) for o in range(27)], np.int32)
-"""(27, 3) int32: stencil offset o -> (di, dj, dk); o = 13 is the voxel itself."""
-CENTRE = 13
-
-
-def stencil_offsets(kind: int) -> tuple[list[int], list[float]]:
-    """Offsets of the 6-, 18- or 26-neighbour stencil and their membrane weights.
-
-    Returns ``(offsets, weights)``: the offset indices o (0..26, without the centre 13) with
-    ``|offset|^2 <= 1, 2, 3`` for ``kind = 6, 18, 26``, in ascending order, and the weights
-    ``1 / |offset|^2`` (offset in voxels: 1 for a face, 1/2 for an edge, 1/3 for a corner
-    neighbour). ``OPPOSITE(o) = 26 - o`` is in the list whenever ``o`` is, with the same weight.
-    """
-    if kind not in (6, 18, 26):
-        raise ValueError(f"stencil must be 6, 18 or 26 neighbours, got {kind!r}")
-    max_sq = {6: 1, 18: 2, 26: 3}[kind]
-    sq = (OFFSETS.astype(np.int64) ** 2).sum(axis=1)
-    offsets = [o for o in range(27) if 0 < sq[o] <= max_sq]
-    return offsets, [1.0 / float(sq[o]) for o in offsets]
-
 
 # -- kernels ---------------------------------------------------------------------------------
 
@@ -79,7 +59,7 @@ def stencil_offsets(kind: int) -> tuple[list[int], list[float]]:
 def _neighbour_cell(block_nbr: ti.template(), c: ti.i32, o: ti.template()) -> ti.i32:
     """Cell of the voxel at stencil offset ``o`` (compile-time) from cell ``c``, or -1 if its
     block is not a candidate block."""
-    di, dj, dk = o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1
+    di, dj, dk = ti.static(stencil_offset(o))
     slot = c >> 9
     t = c & (BLOCK_VOXELS - 1)
     a = (t >> 6) + di
@@ -109,8 +89,7 @@ def _scatter_input(ijk: ti.types.ndarray(dtype=ti.i32, ndim=2),
     for n in range(ijk.shape[0]):
         i, j, k = ijk[n, 0], ijk[n, 1], ijk[n, 2]
         bi, bj, bk = i // BLOCK, j // BLOCK, k // BLOCK  # Taichi's // floors negative ints
-        slot = find_block(block_keys, block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64),
-                                                 ti.cast(bk, ti.i64)))
+        slot = block_row(block_keys, bi, bj, bk)
         if slot >= 0:
             c = (slot * BLOCK_VOXELS + (i - bi * BLOCK) * 64 + (j - bj * BLOCK) * 8
                  + (k - bk * BLOCK))
@@ -262,26 +241,13 @@ def _candidate_blocks(core_ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if len(keys) > 1:  # sorted voxels: runs along k share a block; drop repeats before unique
         keys = keys[np.concatenate([[True], keys[1:] != keys[:-1]])]
     keys = np.unique(keys)
-    keys = np.unique((keys[:, None] + _block_key_steps()[None, :]).ravel())
-    return keys, _decode_keys(keys)
-
-
-def _block_key_steps() -> np.ndarray:
-    """(27,) int64: block_key(b + offset_o) - block_key(b) (keys are linear in the coordinates
-    while every coordinate stays inside the key range)."""
-    off = OFFSETS.astype(np.int64)
-    return (off[:, 0] << 42) + (off[:, 1] << 21) + off[:, 2]
-
-
-def _decode_keys(keys: np.ndarray) -> np.ndarray:
-    """Block coordinates (B, 3) int64 of block keys (inverse of block_key_np)."""
-    mask = (1 << 21) - 1
-    return np.stack([keys >> 42, (keys >> 21) & mask, keys & mask], axis=1) - KEY_BIAS
+    keys = np.unique((keys[:, None] + block_key_steps()[None, :]).ravel())
+    return keys, decode_keys(keys)
 
 
 def _block_neighbours(keys: np.ndarray) -> np.ndarray:
     """(B, 27) int32: slot of the block at each stencil offset of each block, or -1."""
-    want = keys[:, None] + _block_key_steps()[None, :]
+    want = keys[:, None] + block_key_steps()[None, :]
     pos = np.searchsorted(keys, want)
     found = keys[np.minimum(pos, len(keys) - 1)] == want
     return np.where(found, pos, -1).astype(np.int32)

@@ -75,10 +75,9 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from .lookup import BLOCK, KEY_BIAS, build_block_table
-from .observe import _block_row, _cell_corners, _corner, _trilinear
-from .raycast import _band_box
-from .tsdf import _floor_i32
+from .funcs import block_row, cell_corners, corner, floor_i32, trilinear
+from .layout import BLOCK, BLOCK_VOXELS, KEY_BIAS, band_box
+from .lookup import build_block_table
 
 UNOBSERVED = 1.0e6
 """sdf and sigma where a point is not observed, metres (far: no contact; unbounded sigma)."""
@@ -95,22 +94,22 @@ def _cell_rows(block_keys: ti.template(), c0, b):
     for s in range(8):
         cs = ti.Vector([(s >> 2) & 1, (s >> 1) & 1, s & 1])
         if ((cs == 0) | last).all():
-            rows[s] = _block_row(block_keys, b[0] + cs[0], b[1] + cs[1], b[2] + cs[2])
+            rows[s] = block_row(block_keys, b[0] + cs[0], b[1] + cs[1], b[2] + cs[2])
     return rows
 
 
 @ti.func
 def _trilinear_grad(f):
-    """d a_c / d f (3, 8) float64: the derivatives of the 8 weights of :func:`_trilinear`
+    """d a_c / d f (3, 8) float64: the derivatives of the 8 weights of :func:`trilinear`
     along each axis, corner c = 4 ci + 2 cj + ck."""
     w = ti.Matrix([[1.0 - f[0], f[0]], [1.0 - f[1], f[1]], [1.0 - f[2], f[2]]], dt=ti.f64)
     s = ti.Vector([-1.0, 1.0], dt=ti.f64)  # d(1 - f)/df, df/df
-    return ti.Matrix([[s[ti.static(_corner(c)[0])] * w[1, ti.static(_corner(c)[1])]
-                       * w[2, ti.static(_corner(c)[2])] for c in ti.static(range(8))],
-                      [w[0, ti.static(_corner(c)[0])] * s[ti.static(_corner(c)[1])]
-                       * w[2, ti.static(_corner(c)[2])] for c in ti.static(range(8))],
-                      [w[0, ti.static(_corner(c)[0])] * w[1, ti.static(_corner(c)[1])]
-                       * s[ti.static(_corner(c)[2])] for c in ti.static(range(8))]], dt=ti.f64)
+    return ti.Matrix([[s[ti.static(corner(c)[0])] * w[1, ti.static(corner(c)[1])]
+                       * w[2, ti.static(corner(c)[2])] for c in ti.static(range(8))],
+                      [w[0, ti.static(corner(c)[0])] * s[ti.static(corner(c)[1])]
+                       * w[2, ti.static(corner(c)[2])] for c in ti.static(range(8))],
+                      [w[0, ti.static(corner(c)[0])] * w[1, ti.static(corner(c)[1])]
+                       * s[ti.static(corner(c)[2])] for c in ti.static(range(8))]], dt=ti.f64)
 
 
 def _as_1d(name: str, a, n: int, kind: str) -> np.ndarray:
@@ -168,7 +167,7 @@ class SDFField:
         self.n_blocks = len(keys)
         # Valid base corners c0 lie in a band block: g in [8 b_min, 8 (b_max + 1)) per axis
         # (Python constants, compiled into the accessors).
-        box = _band_box(keys)
+        box = band_box(keys)
         self._g_lo = tuple(float(x) for x in box[:3])
         self._g_hi = tuple(float(x) for x in box[3:])
         # One SNode tree holds the whole band (module docstring, rule 2).
@@ -179,7 +178,7 @@ class SDFField:
         self.var = ti.field(ti.f32)
         self.observed = ti.field(ti.u8)
         fb.dense(ti.i, self.n_blocks).place(self.block_keys)
-        fb.dense(ti.ij, (self.n_blocks, BLOCK ** 3)).place(self.block_table)
+        fb.dense(ti.ij, (self.n_blocks, BLOCK_VOXELS)).place(self.block_table)
         fb.dense(ti.i, n).place(self.mean, self.var, self.observed)
         self._tree = fb.finalize()
         self._prog = impl.get_runtime().prog
@@ -230,10 +229,10 @@ class SDFField:
         f = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
         valid = 0
         if ((g >= lo) & (g < hi)).all():  # also false for NaN; keeps the i32 floor in range
-            c0 = _floor_i32(g)
+            c0 = floor_i32(g)
             f = g - ti.cast(c0, ti.f64)
             b = c0 // BLOCK  # floors (c0 >= 8 b_min may be negative)
-            idx = _cell_corners(self.block_table, c0, b, _cell_rows(self.block_keys, c0, b))
+            idx = cell_corners(self.block_table, c0, b, _cell_rows(self.block_keys, c0, b))
             if idx[7] >= 0:
                 valid = 1
                 for c in range(8):
@@ -250,7 +249,7 @@ class SDFField:
         s = ti.cast(UNOBSERVED, ti.f64)
         n = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
         if valid:
-            a = _trilinear(f)
+            a = trilinear(f)
             da = _trilinear_grad(f)
             d = 0.0
             s = 0.0

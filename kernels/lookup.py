@@ -2,7 +2,8 @@
 
 The band's voxels are grouped by their 8^3 block (the same blocks as the TSDF):
 
-* ``block_keys`` (B,) int64, sorted ascending: :func:`block_key` of each block holding band voxels;
+* ``block_keys`` (B,) int64, sorted ascending: :func:`kernels.layout.block_key_np` of each
+  block holding band voxels;
 * ``block_table`` (B, 512) int32: band index of the voxel at local position
   ``(i % 8) * 64 + (j % 8) * 8 + (k % 8)`` of block ``b``, or -1 if that voxel is not in the band.
 
@@ -13,14 +14,8 @@ no hashing races: :func:`band_index` is a pure read, deterministic and safe in a
 import numpy as np
 import taichi as ti
 
-BLOCK = 8
-KEY_BIAS = 1 << 20  # block coordinates in [-2^20, 2^20) (8.4M voxels per axis)
-
-
-def block_key_np(blocks: np.ndarray) -> np.ndarray:
-    """int64 key of integer block coordinates (..., 3); ascending keys = lexicographic blocks."""
-    b = np.asarray(blocks, dtype=np.int64) + KEY_BIAS
-    return (b[..., 0] << 42) | (b[..., 1] << 21) | b[..., 2]
+from .funcs import block_row
+from .layout import BLOCK, BLOCK_VOXELS, block_key_np, decode_keys
 
 
 def build_block_table(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -29,31 +24,10 @@ def build_block_table(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     blocks = np.floor_divide(ijk, BLOCK)
     keys, inverse = np.unique(block_key_np(blocks), return_inverse=True)
     local = ijk - blocks * BLOCK
-    table = np.full((len(keys), BLOCK ** 3), -1, dtype=np.int32)
+    table = np.full((len(keys), BLOCK_VOXELS), -1, dtype=np.int32)
     table[inverse.reshape(-1), local[:, 0] * 64 + local[:, 1] * 8 + local[:, 2]] = np.arange(
         len(ijk), dtype=np.int32)
     return keys.astype(np.int64), table
-
-
-@ti.func
-def block_key(bi: ti.i64, bj: ti.i64, bk: ti.i64) -> ti.i64:
-    return ((bi + KEY_BIAS) << 42) | ((bj + KEY_BIAS) << 21) | (bk + KEY_BIAS)
-
-
-@ti.func
-def find_block(keys: ti.template(), key: ti.i64) -> ti.i32:
-    """Row of ``key`` in the sorted block keys, or -1 (binary search, read only)."""
-    lo, hi = 0, keys.shape[0]
-    while lo < hi:  # first position with keys[pos] >= key
-        mid = (lo + hi) // 2
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    out = -1
-    if lo < keys.shape[0] and keys[lo] == key:
-        out = lo
-    return out
 
 
 @ti.func
@@ -62,9 +36,27 @@ def band_index(block_keys: ti.template(), block_table: ti.template(), i: ti.i32,
     """Band index of voxel (i, j, k), or -1. ``block_keys``/``block_table`` are ndarray kernel
     arguments as described in the module docstring. Deterministic (read only)."""
     bi, bj, bk = i // BLOCK, j // BLOCK, k // BLOCK  # Taichi's // floors for negative ints
-    row = find_block(block_keys, block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64),
-                                           ti.cast(bk, ti.i64)))
+    row = block_row(block_keys, bi, bj, bk)
     out = -1
     if row >= 0:
         out = block_table[row, (i - bi * BLOCK) * 64 + (j - bj * BLOCK) * 8 + (k - bk * BLOCK)]
     return out
+
+
+def band_ijk_from_table(block_keys: np.ndarray, block_table: np.ndarray,
+                        n_voxels: int) -> np.ndarray:
+    """Invert :func:`build_block_table`: voxel ``ijk`` (N, 3) int32 of every band index
+    0..N-1. Raises ValueError unless the table holds each index exactly once."""
+    keys = np.asarray(block_keys, np.int64)
+    table = np.asarray(block_table, np.int32)
+    rows, t = np.nonzero(table >= 0)
+    idx = table[rows, t].astype(np.int64)
+    if len(idx) != n_voxels or (len(idx) and (idx.min() < 0 or idx.max() >= n_voxels
+                                              or np.bincount(idx, minlength=n_voxels).max() != 1)):
+        raise ValueError(f"block table does not hold band indices 0..{n_voxels - 1} exactly once "
+                         f"({len(idx)} entries)")
+    blocks = decode_keys(keys[rows])
+    local = np.stack([t >> 6, (t >> 3) & 7, t & 7], axis=1)
+    ijk = np.empty((n_voxels, 3), np.int32)
+    ijk[idx] = blocks * BLOCK + local
+    return ijk

@@ -17,7 +17,7 @@ The prior over the band values x (metres) is ``p(x) ∝ exp(-1/2 x^T Q0 x + b0^T
   - ``"none"``: no anchors; the membrane alone is singular (its null space is the constant
     vector), so ``eps > 0`` or the data term must make Q positive definite.
 
-In stencil form (layout in kernels/band.py): ``Q0_ij = -lam w_ij`` at offset o of row i,
+In stencil form (layout in kernels/stencil.py): ``Q0_ij = -lam w_ij`` at offset o of row i,
 ``Q0_ii = lam * sum_j w_ij + a_i + eps``, and the anchor part of the right-hand side
 ``b0_i = a_i tsdf_i``. Since ``w`` of offset o equals that of ``26 - o``, adding Q0 keeps a
 symmetric stencil exactly symmetric (the same float32 number is subtracted on both sides).
@@ -26,17 +26,9 @@ symmetric stencil exactly symmetric (the same float32 number is subtracted on bo
 import numpy as np
 import taichi as ti
 
-from .band import CENTRE, stencil_offsets
-
-DEFAULT_STENCIL = 6
-"""Membrane stencil by default: 6 face neighbours (the paper leaves 6/18/26 open). Not measured:
-the prior's assembly is cheapest with 6, but Q x runs over the full 27-point stencil that the
-data term fills whatever this is, so speed hardly depends on it; 18 and 26 smooth more
-isotropically. The ablation (tools/) should decide."""
+from .layout import CENTRE, STENCIL, stencil_offsets
 
 ANCHOR_MODES = ("none", "boundary", "all")
-DEFAULT_ANCHORS = "boundary"
-"""Anchor set by default: the band boundary, as in the paper (its full model, Table 2)."""
 
 _NONE, _BOUNDARY, _ALL = 0, 1, 2  # anchor mode codes passed to the kernel
 _MODE_CODE = {"none": _NONE, "boundary": _BOUNDARY, "all": _ALL}
@@ -46,7 +38,7 @@ def prior_weights(stencil: int) -> np.ndarray:
     """(27,) float64 membrane weight per stencil offset: ``1 / |offset|^2`` for the offsets of the
     ``stencil`` (6, 18 or 26), 0 for the others and for the centre."""
     offsets, weights = stencil_offsets(stencil)
-    w = np.zeros(27, np.float64)
+    w = np.zeros(STENCIL, np.float64)
     w[offsets] = weights
     return w
 
@@ -85,7 +77,7 @@ def _add_membrane_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
         b0[i] = ti.cast(anchor * ti.cast(tsdf[i], ti.f64), b0_dtype)
 
 
-_AXIS_STRIDE = (9, 3, 1)  # offset o of (di, dj, dk) is 13 + 9 di + 3 dj + dk
+_AXIS_STRIDE = (9, 3, 1)  # offset o of (di, dj, dk) is CENTRE + 9 di + 3 dj + dk
 
 
 @ti.kernel
@@ -139,7 +131,7 @@ def _add_curvature_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
 
 def add_curvature_prior(S, nbr, *, lam2: float) -> tuple:
     """Add the second-order (curvature) prior ``lam2 |D x|^2`` to the stencil ``S``; return its
-    entries at offsets +-2 as the far part ``(S2, nbr2)`` of Q (kernels/pcg.py).
+    entries at offsets +-2 as the far part ``(S2, nbr2)`` of Q (kernels/stencil.py).
 
     D holds one row per band voxel j and axis e whose neighbours ``j +- e`` are both band
     voxels: the second difference ``x_{j-e} - 2 x_j + x_{j+e}``. Unlike the membrane, this
@@ -214,7 +206,7 @@ def _to_numpy(arr) -> np.ndarray:
 
 
 def add_prior(S, b0, nbr, tsdf, weight, *, lam: float, lam_b: float, eps: float,
-              stencil: int = DEFAULT_STENCIL, anchors: str = DEFAULT_ANCHORS) -> None:
+              stencil: int, anchors: str) -> None:
     """Add the membrane prior Q0 into the stencil ``S`` and write its right-hand side ``b0``.
 
     Args:
@@ -228,8 +220,10 @@ def add_prior(S, b0, nbr, tsdf, weight, *, lam: float, lam_b: float, eps: float,
         lam: membrane strength lambda >= 0, 1/m^2 like Q (no default: chosen by the caller).
         lam_b: anchor strength lambda_b >= 0, 1/m^2.
         eps: added to every diagonal entry, >= 0, 1/m^2.
-        stencil: 6, 18 or 26 neighbours (see ``DEFAULT_STENCIL``).
-        anchors: ``"boundary"``, ``"all"`` or ``"none"`` (module docstring).
+        stencil: 6, 18 or 26 neighbours (no default: the caller's configuration chooses; 6 is
+            the cheapest to assemble, 18 and 26 smooth more isotropically).
+        anchors: ``"boundary"`` (the paper's full model), ``"all"`` or ``"none"`` (module
+            docstring); no default.
     S, b0, nbr, tsdf, weight are numpy arrays or Taichi ndarrays (any N, no recompilation).
 
     Raises:

@@ -55,8 +55,8 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-BLOCK = 8  # voxels per block edge
-BLOCK_VOXELS = BLOCK ** 3
+from .funcs import floor_i32
+from .layout import BLOCK, BLOCK_VOXELS
 MAX_VOLUMES = 1 << 12  # volumes per Taichi program (ids are not reused)
 L1 = 64  # first spatial pointer level: cells per axis
 L2 = 16  # second spatial pointer level: blocks per axis in one first-level cell
@@ -115,15 +115,6 @@ def _block_map() -> _BlockMap:
 # -- kernels ---------------------------------------------------------------------------------
 
 @ti.func
-def _floor_i32(x):
-    """floor(x) as int32 for |x| < 2^31 without a libm call (Taichi's CPU target has no
-    SSE4.1 ``roundss``, so ti.floor is a function call): truncate, then step down where the
-    truncation went up (negative non-integers)."""
-    t = ti.cast(x, ti.i32)
-    return t - ti.cast(t > x, ti.i32)  # the comparison promotes t to x's float type
-
-
-@ti.func
 def _touch(blk, vid: ti.i32, frame: ti.i32, slot_map: ti.template(), stamp_map: ti.template(),
            cache: ti.types.ndarray(), counts: ti.types.ndarray(),
            frame_list: ti.types.ndarray()):
@@ -170,11 +161,11 @@ def _activate_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), stride: 
             ray = M @ ti.Vector([ti.cast(u, ti.f32), ti.cast(v, ti.f32), 1.0])
             x = o + ti.max(d - trunc, 1e-3) * ray  # segment start, block units
             seg = o + (d + trunc) * ray - x
-            n = 1 - _floor_i32(-seg.norm() * inv_step)  # ceil(length / step) + 1
+            n = 1 - floor_i32(-seg.norm() * inv_step)  # ceil(length / step) + 1
             delta = seg / ti.cast(n, ti.f32)
             last = ti.Vector([-1, -1, -1])
             for _ in range(n + 1):
-                blk = _floor_i32(x) + BLOCK_OFFSET
+                blk = floor_i32(x) + BLOCK_OFFSET
                 if (blk >= 0).all() and (blk < BLOCKS_PER_AXIS).all():
                     if (blk != last).any():  # consecutive samples often share a block
                         last = blk

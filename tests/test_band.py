@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from kernels.band import MAX_ABS_IJK, MAX_DILATION, build_band, stencil_offsets
+from kernels.band import MAX_ABS_IJK, MAX_DILATION, build_band
+from kernels.layout import stencil_offsets
 from kernels.lookup import build_block_table
 
 VOXEL = 0.01  # metres

@@ -15,7 +15,8 @@ import scipy.sparse as sp
 from bftaichi.config import SyntheticConfig
 from bftaichi.formats.synthetic import SyntheticDataset
 from kernels.lookup import build_block_table
-from kernels.observe import Observer, stencil_offset
+from kernels.layout import stencil_offset
+from kernels.observe import Observer
 
 VOXEL = 0.03
 TRUNC = 2 * VOXEL
@@ -68,7 +69,10 @@ class Band:
         return out
 
     def observer(self, **kw):
-        return Observer(self.keys, self.table, len(self.ijk), VOXEL, TRUNC, **{**NOISE, **kw})
+        # the Observer's former defaults: count each pixel once, samples tau in front, no gate
+        old = dict(count_once="pixel", front_m=TRUNC, gate_m=0.0)
+        return Observer(self.keys, self.table, len(self.ijk), VOXEL, TRUNC,
+                        **{**NOISE, **old, **kw})
 
 
 @pytest.fixture(scope="module")

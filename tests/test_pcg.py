@@ -20,6 +20,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from kernels import pcg as kp
+from kernels.compact import CompactStencil
+from kernels.probes import coloring_lattice, probe_variance, probe_vectors
+from kernels.stencil import apply_Q, apply_Q_batched, check_stencil
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -135,20 +138,20 @@ def test_stencil_matches_csr_assembled_independently(large):
     rng = np.random.default_rng(3)
     x64 = rng.standard_normal(n)
     x32 = x64.astype(np.float32)
-    assert rel(kp.apply_Q(S, nbr, x64), Q @ x64) < 1e-5
+    assert rel(apply_Q(S, nbr, x64), Q @ x64) < 1e-5
     out = np.zeros(n, np.float32)
-    assert kp.apply_Q(S, nbr, x32, out) is out
+    assert apply_Q(S, nbr, x32, out) is out
     assert rel(out, Q @ x32.astype(np.float64)) < 1e-5
     # batched: 16 vectors in one block, and 20 as two blocks of 10
     for k in (16, 20):
         X = rng.standard_normal((n, k)).astype(np.float32)
-        Y = kp.apply_Q_batched(S, nbr, X)
+        Y = apply_Q_batched(S, nbr, X)
         ref = Q @ X.astype(np.float64)
         assert max(rel(Y[:, c], ref[:, c]) for c in range(k)) < 1e-5
         # the solver's padded layout (zero first row, voxel i in row i+1) gives the same
         Xp = np.concatenate([np.zeros((1, k), np.float32), X])
         Yp = np.full_like(Xp, np.nan)
-        kp.apply_Q_batched(S, nbr, Xp, Yp, padded=True)
+        apply_Q_batched(S, nbr, Xp, Yp, padded=True)
         assert np.array_equal(Yp[1:], Y) and not Yp[0].any()
 
 
@@ -169,7 +172,7 @@ def test_compact_product_matches_csr_on_a_band_with_gaps(large):
     i, a = np.nonzero(nbr2 >= 0)
     Q_far = sp.csr_matrix((S2[i, a].astype(np.float64), (i, nbr2[i, a])), shape=Q_near.shape)
     for far in (None, (S2, nbr2)):
-        op = kp.CompactStencil(S, nbr, far)
+        op = CompactStencil(S, nbr, far)
         assert 0 < op.scalar_rows < len(S) / 4  # both paths (SIMD sub-runs, single rows) run
         assert op.nbytes < 216 * len(S)  # smaller than (S, nbr), even with many gaps
         Qf = Q_near if far is None else Q_near + Q_far
@@ -177,7 +180,7 @@ def test_compact_product_matches_csr_on_a_band_with_gaps(large):
         assert rel(op.apply(x64), Qf @ x64) < 1e-12
         x32 = x64.astype(np.float32)
         assert rel(op.apply(x32), Qf @ x32.astype(np.float64)) < 1e-5
-        assert rel(op.apply(x32), kp.apply_Q(S, nbr, x32, far=far)) < 1e-6
+        assert rel(op.apply(x32), apply_Q(S, nbr, x32, far=far)) < 1e-6
         # padded (the solvers' layout) and deterministic
         xp = np.concatenate([[0.0], x64])
         yp = np.full_like(xp, np.nan)
@@ -188,14 +191,14 @@ def test_compact_product_matches_csr_on_a_band_with_gaps(large):
         x_inf[100] = np.inf
         y = op.apply(x_inf)
         np.testing.assert_array_equal(np.isfinite(y),
-                                      np.isfinite(kp.apply_Q(S, nbr, x_inf, far=far)))
+                                      np.isfinite(apply_Q(S, nbr, x_inf, far=far)))
     with pytest.raises(ValueError, match="shape"):
         op.apply(np.zeros(len(S) + 1))
 
 
 def test_bad_stencils_are_rejected(small):
     S, nbr = small["S"], small["nbr"]
-    kp.check_stencil(S, nbr)  # the valid one passes
+    check_stencil(S, nbr)  # the valid one passes
     asym = S.copy()
     i, o = np.argwhere(nbr[:, :13] >= 0)[0]
     asym[i, o] *= 1.5
@@ -204,18 +207,18 @@ def test_bad_stencils_are_rejected(small):
     neg = S.copy()
     neg[5, 13] = -1.0
     with pytest.raises(ValueError, match="S\\[5, 13\\]"):
-        kp.probe_variance(neg, nbr)
+        probe_variance(neg, nbr, method="rademacher")
     one_way = nbr.copy()
     i, o = np.argwhere(nbr[:, 14:] >= 0)[0]
     one_way[i, o + 14] = -1  # its neighbour still links back
     with pytest.raises(ValueError, match="nbr is not symmetric"):
-        kp.check_stencil(S, one_way)
+        check_stencil(S, one_way)
     out_of_range = nbr.copy()
     out_of_range[0, 0] = len(S)
     with pytest.raises(ValueError, match="outside"):
-        kp.check_stencil(S, out_of_range)
+        check_stencil(S, out_of_range)
     with pytest.raises(ValueError, match=r"\(N, 27\)"):
-        kp.apply_Q(S[:, :26], nbr[:, :26], np.zeros(len(S)))
+        apply_Q(S[:, :26], nbr[:, :26], np.zeros(len(S)))
     with pytest.raises(ValueError, match="non-finite"):
         kp.pcg(S, nbr, np.full(len(S), np.nan))
 
@@ -289,7 +292,7 @@ def test_probe_variance_converges_to_the_exact_diagonal(small):
     errors = {}
     for method in ("rademacher", "coloring"):
         for k in (4, 16, 64):
-            s, info = kp.probe_variance(S, nbr, n_probes=k, seed=0, method=method, ijk=ijk)
+            s, info = probe_variance(S, nbr, n_probes=k, seed=0, method=method, ijk=ijk)
             assert info["converged"] and info["n_not_converged"] == 0
             assert len(info["iterations"]) == k
             errors[method, k] = median_rel(s, exact)
@@ -301,7 +304,7 @@ def test_probe_variance_converges_to_the_exact_diagonal(small):
 def test_coloring_probes_separate_neighbours(small):
     ijk, nbr = small["ijk"], small["nbr"]
     for k in (8, 16, 64):
-        Z = kp.probe_vectors(len(ijk), k, seed=0, method="coloring", ijk=ijk)
+        Z = probe_vectors(len(ijk), k, seed=0, method="coloring", ijk=ijk)
         assert np.all(np.count_nonzero(Z, axis=1) == 1)  # every voxel in exactly one probe
         probe = np.argmax(Z != 0, axis=1)
         # no two of the 27 stencil neighbours share a probe
@@ -309,21 +312,21 @@ def test_coloring_probes_separate_neighbours(small):
         same = probe[:, None] == probe[np.where(has, nbr, 0)]
         same[:, 13] = False
         assert not (same & has).any()
-        assert kp.coloring_lattice(k)[2] >= 4  # same-colour voxels >= 2 voxels apart
+        assert coloring_lattice(k)[2] >= 4  # same-colour voxels >= 2 voxels apart
 
 
 def test_probe_variance_is_seeded_and_reports_unconverged_probes(small):
     S, nbr, ijk = small["S"], small["nbr"], small["ijk"]
     for method in ("rademacher", "coloring"):
-        a, info_a = kp.probe_variance(S, nbr, n_probes=8, seed=7, method=method, ijk=ijk)
-        b, info_b = kp.probe_variance(S, nbr, n_probes=8, seed=7, method=method, ijk=ijk)
-        c, _ = kp.probe_variance(S, nbr, n_probes=8, seed=8, method=method, ijk=ijk)
+        a, info_a = probe_variance(S, nbr, n_probes=8, seed=7, method=method, ijk=ijk)
+        b, info_b = probe_variance(S, nbr, n_probes=8, seed=7, method=method, ijk=ijk)
+        c, _ = probe_variance(S, nbr, n_probes=8, seed=8, method=method, ijk=ijk)
         assert np.array_equal(a, b) and info_a == info_b and not np.array_equal(a, c)
-    _, info = kp.probe_variance(S, nbr, n_probes=8, maxiter=2)
+    _, info = probe_variance(S, nbr, n_probes=8, method="rademacher", maxiter=2)
     assert not info["converged"] and info["n_not_converged"] == 8
     assert info["iterations"] == [2] * 8 and min(info["relative_residuals"]) > 1e-4
     with pytest.raises(ValueError, match="ijk"):
-        kp.probe_variance(S, nbr, n_probes=8, method="coloring")
+        probe_variance(S, nbr, n_probes=8, method="coloring")
 
 
 # -- tools/bench_core.py ---------------------------------------------------------------------------

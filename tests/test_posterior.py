@@ -135,7 +135,8 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     from bftaichi.stages.prior import System
     from bftaichi.stages.solve import solve_map
     from conftest import posterior_system, solved
-    from kernels.pcg import apply_Q, pcg
+    from kernels.pcg import pcg
+    from kernels.stencil import apply_Q
 
     cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false"])
     recon, post = solved(cfg, open_frames(cfg), variance=False)

@@ -18,7 +18,7 @@ import taichi as ti
 from scipy.sparse.csgraph import connected_components
 
 from kernels.band import build_band
-from kernels.pcg import apply_Q, check_far, check_stencil
+from kernels.stencil import apply_Q, check_far, check_stencil
 from kernels.prior import ANCHOR_MODES, add_curvature_prior, add_prior
 
 VOXEL = 0.01
@@ -158,7 +158,8 @@ def test_float64_rhs_and_taichi_ndarrays(band):
 def test_empty_band_is_a_no_op():
     S, b0 = np.zeros((0, 27), np.float32), np.zeros(0, np.float32)
     out = add_prior(S, b0, np.zeros((0, 27), np.int32), np.zeros(0, np.float32),
-                    np.zeros(0, np.float32), lam=1.0, lam_b=1.0, eps=0.0)
+                    np.zeros(0, np.float32), lam=1.0, lam_b=1.0, eps=0.0, stencil=6,
+                    anchors="boundary")
     assert out is None and S.shape == (0, 27) and b0.shape == (0,)
 
 

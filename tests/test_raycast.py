@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from kernels.lookup import build_block_table
-from kernels.raycast import CoverageGrid, raycast_depth
+from kernels.coverage import CoverageGrid
+from kernels.raycast import raycast_depth
 
 R_SPHERE = 0.3  # metres
 CORNERS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])

@@ -18,6 +18,7 @@ import pytest
 import kernels.tsdf as ktsdf
 from bftaichi.backend import init
 from bftaichi.geometry import intrinsics, look_at
+from kernels.layout import block_key_np
 from kernels.tsdf import SparseTSDF
 
 
@@ -90,8 +91,7 @@ def small_frames():
 
 def block_keys(blk):
     """int64 key of integer block indices (n, 3) (|index| < 2^20)."""
-    b = np.asarray(blk, np.int64) + (1 << 20)
-    return (b[:, 0] << 42) | (b[:, 1] << 21) | b[:, 2]
+    return block_key_np(blk)
 
 
 def ref_block_sets(depth, K, T_W_C, trunc, block_m, stride):

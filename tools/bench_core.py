@@ -1,6 +1,7 @@
 #!/usr/bin/env python
-"""Speed of the probabilistic core (kernels/pcg.py): the matrix-free stencil Q·x against scipy
-CSR SpMV of the identical Q, the PCG MAP solve, and the batched probe variance::
+"""Speed of the probabilistic core (kernels/stencil.py, compact.py, pcg.py, probes.py): the
+matrix-free stencil Q·x against scipy CSR SpMV of the identical Q, the PCG MAP solve, and the
+batched probe variance::
 
     python tools/bench_core.py                          # ~500k band voxels, best of 5
     python tools/bench_core.py --n 1000000 --repeats 3 --json out.json
@@ -60,7 +61,6 @@ HALF_WIDTH_VOX = 2 * TAU_VOX + 1  # alpha * tau + 1 voxel of dilation
 SIGMA_M = 0.003  # depth noise per ray
 EPS = 1.0  # m^-2 on the diagonal
 CORNERS = np.array([(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)], np.int64)
-KEY_BIAS = 1 << 20
 
 
 # -- the problem -----------------------------------------------------------------------------
@@ -85,9 +85,11 @@ def sphere_band(radius: float, half_width: float, window: float | None = None):
 
 
 def keys(ijk: np.ndarray) -> np.ndarray:
-    """int64 key, ascending in lexicographic (i, j, k) order."""
-    b = np.asarray(ijk, np.int64) + KEY_BIAS
-    return (b[..., 0] << 42) | (b[..., 1] << 21) | b[..., 2]
+    """int64 key, ascending in lexicographic (i, j, k) order (the block-key packing of
+    kernels.layout applied to voxels)."""
+    from kernels.layout import block_key_np
+
+    return block_key_np(ijk)
 
 
 def lookup(sorted_keys: np.ndarray, ijk: np.ndarray) -> np.ndarray:
@@ -98,8 +100,8 @@ def lookup(sorted_keys: np.ndarray, ijk: np.ndarray) -> np.ndarray:
 
 
 def neighbour_table(ijk: np.ndarray) -> np.ndarray:
-    """nbr (N, 27) int32 of the band contract (kernels/pcg.py)."""
-    from kernels.pcg import OFFSETS
+    """nbr (N, 27) int32 of the band contract (kernels/stencil.py)."""
+    from kernels.layout import OFFSETS
 
     band_keys = keys(ijk)
     return np.stack([lookup(band_keys, ijk + off) for off in OFFSETS], axis=1)
@@ -109,7 +111,7 @@ def posterior(ijk, dist, nbr, radius, lam, rays_per_voxel=2.0, window=None, seed
     """Stencil S (N, 27) float32 of Q = lam * membrane + A^T W A + eps I, h = A^T W y (1/m),
     x0 = clamped noisy SDF (m), and the median data / prior diagonal ratio on observed voxels.
     Observations as in the module docstring; accumulated in float64, rounded once."""
-    from kernels.pcg import OFFSETS
+    from kernels.layout import OFFSETS
 
     rng = np.random.default_rng(seed)
     n = len(ijk)
@@ -186,7 +188,7 @@ def best_of(fn, repeats: int, warm_up: bool = True) -> float:
 def bench_speed(args) -> dict:
     import taichi as ti
 
-    from kernels import pcg as kp
+    from kernels import compact as kcompact, pcg as kpcg, probes as kprobes, stencil as kstencil
 
     t0 = time.perf_counter()
     radius = np.sqrt(args.n / (4 * np.pi * 2 * HALF_WIDTH_VOX))
@@ -213,18 +215,19 @@ def bench_speed(args) -> dict:
     out = {k: np.empty_like(v) for k, v in pad.items()}
     y32, Y = np.empty_like(x32), np.empty_like(X)
     # the solver's single-vector layout, built once per solve (pcg checks the stencil first)
-    t_check = best_of(lambda: kp.check_stencil(S, nbr), 1)
+    t_check = best_of(lambda: kstencil.check_stencil(S, nbr), 1)
     ops = []
-    t_layout = best_of(lambda: ops.append(kp.CompactStencil(S, nbr, check=False)), min(args.repeats, 2),
+    t_layout = best_of(lambda: ops.append(kcompact.CompactStencil(S, nbr, check=False)),
+                       min(args.repeats, 2),
                        warm_up=False)
     op = ops[-1]
     t_compile = time.perf_counter()
     op.apply(pad["x32"], out["x32"], padded=True)
     op.apply(pad["x64"], out["x64"], padded=True)
     y_gather = np.empty_like(pad["x64"])
-    kp.apply_Q(S, nbr, pad["x32"], np.empty_like(pad["x32"]), padded=True)
-    kp.apply_Q(S, nbr, pad["x64"], y_gather, padded=True)
-    kp.apply_Q_batched(S, nbr, pad["X"], out["X"], padded=True)
+    kstencil.apply_Q(S, nbr, pad["x32"], np.empty_like(pad["x32"]), padded=True)
+    kstencil.apply_Q(S, nbr, pad["x64"], y_gather, padded=True)
+    kstencil.apply_Q_batched(S, nbr, pad["X"], out["X"], padded=True)
     t_compile = time.perf_counter() - t_compile
     ref = csr64 @ x64
     err = float(np.linalg.norm(out["x64"][1:] - ref) / np.linalg.norm(ref))
@@ -234,13 +237,13 @@ def bench_speed(args) -> dict:
     sec = {  # on the solver's padded layout (no copies), then the plain calls
         "stencil_f32": best_of(lambda: op.apply(pad["x32"], out["x32"], padded=True), r),
         "stencil_f64": best_of(lambda: op.apply(pad["x64"], out["x64"], padded=True), r),
-        "gather_f32": best_of(lambda: kp.apply_Q(S, nbr, pad["x32"], g32, padded=True), r),
-        "gather_f64": best_of(lambda: kp.apply_Q(S, nbr, pad["x64"], g64, padded=True), r),
-        "stencil_k16": best_of(lambda: kp.apply_Q_batched(S, nbr, pad["X"], out["X"], padded=True),
+        "gather_f32": best_of(lambda: kstencil.apply_Q(S, nbr, pad["x32"], g32, padded=True), r),
+        "gather_f64": best_of(lambda: kstencil.apply_Q(S, nbr, pad["x64"], g64, padded=True), r),
+        "stencil_k16": best_of(lambda: kstencil.apply_Q_batched(S, nbr, pad["X"], out["X"], padded=True),
                                r),
         "compact_plain_f32": best_of(lambda: op.apply(x32, y32), r),
-        "apply_Q_f32": best_of(lambda: kp.apply_Q(S, nbr, x32, y32), r),
-        "apply_Q_k16": best_of(lambda: kp.apply_Q_batched(S, nbr, X, Y), r),
+        "apply_Q_f32": best_of(lambda: kstencil.apply_Q(S, nbr, x32, y32), r),
+        "apply_Q_k16": best_of(lambda: kstencil.apply_Q_batched(S, nbr, X, Y), r),
         "csr_f32": best_of(lambda: csr32 @ x32, r),
         "csr_f64": best_of(lambda: csr64 @ x64, r),
         "csr_f32_k16": best_of(lambda: csr32 @ X, r),
@@ -272,11 +275,11 @@ def bench_speed(args) -> dict:
 
     # MAP solve and probes: compile first (a 1-iteration call), then best of 2 runs
     rs = min(r, 2)
-    kp.pcg(S, nbr, h, x0=x0, maxiter=1)
+    kpcg.pcg(S, nbr, h, x0=x0, maxiter=1)
     for k in (1, 16):
-        kp.probe_variance(S, nbr, n_probes=k, maxiter=1)
+        kprobes.probe_variance(S, nbr, n_probes=k, method="rademacher", maxiter=1)
     runs = []
-    t_pcg = best_of(lambda: runs.append(kp.pcg(S, nbr, h, x0=x0, tol=1e-6, maxiter=args.maxiter)),
+    t_pcg = best_of(lambda: runs.append(kpcg.pcg(S, nbr, h, x0=x0, tol=1e-6, maxiter=args.maxiter)),
                     rs, warm_up=False)
     mu, info = runs[-1]
     per_it_ms = t_pcg / max(info["iterations"], 1) * 1e3
@@ -292,8 +295,9 @@ def bench_speed(args) -> dict:
     probes = {}
     for k in (1, 16):
         runs = []
-        sec_k = best_of(lambda: runs.append(kp.probe_variance(S, nbr, n_probes=k, seed=0, tol=1e-4,
-                                                               maxiter=args.maxiter)),
+        sec_k = best_of(lambda: runs.append(kprobes.probe_variance(
+                            S, nbr, n_probes=k, seed=0, method="rademacher", tol=1e-4,
+                            maxiter=args.maxiter)),
                         rs, warm_up=False)
         pinfo = runs[-1][1]
         probes[k] = dict(seconds=sec_k, iterations=max(pinfo["iterations"]),
@@ -306,7 +310,7 @@ def bench_speed(args) -> dict:
 
     if args.profile:
         ti.profiler.clear_kernel_profiler_info()
-        kp.pcg(S, nbr, h, x0=x0, tol=1e-6, maxiter=args.maxiter)
+        kpcg.pcg(S, nbr, h, x0=x0, tol=1e-6, maxiter=args.maxiter)
         print("\nTaichi kernel profiler, one PCG solve:")
         ti.profiler.print_kernel_profiler_info("count")
 
@@ -332,7 +336,7 @@ def bench_accuracy(args) -> dict:
     the sphere (open band edges, as a partial scan), for both probe methods, K = 4..64 and
     three prior strengths (lam / 10, lam, 10 lam); over all band voxels and over the voxels
     within one voxel of the surface; mean over 3 seeds."""
-    from kernels import pcg as kp
+    from kernels import compact as kcompact, pcg as kpcg, probes as kprobes, stencil as kstencil
 
     radius, window = 40.0, float(args.acc_window)
     ijk, dist = sphere_band(radius, HALF_WIDTH_VOX, window)
@@ -352,7 +356,7 @@ def bench_accuracy(args) -> dict:
             for k in ks:
                 err_all, err_near = [], []
                 for seed in range(3):
-                    s, _ = kp.probe_variance(S, nbr, n_probes=k, seed=seed, method=method,
+                    s, _ = kprobes.probe_variance(S, nbr, n_probes=k, seed=seed, method=method,
                                              ijk=ijk)
                     e = np.abs(s / exact - 1)
                     err_all.append(np.median(e))

@@ -146,12 +146,12 @@ def region_of_interest(ijk: np.ndarray, voxel_size: float, scale: float, target=
 
 class CoverageGrid:
     """Which cells of the region of interest some frame has seen (a ray crossed them up to its
-    surface, or the surface itself): :class:`kernels.raycast.CoverageGrid` over a cube of
+    surface, or the surface itself): :class:`kernels.coverage.CoverageGrid` over a cube of
     ``cells`` per side (never finer than ``voxel_size``)."""
 
     def __init__(self, lo, hi, cells: int, voxel_size: float, trunc_m: float,
                  miss_depth_m: float = 0.0):
-        from kernels.raycast import CoverageGrid as _Grid
+        from kernels.coverage import CoverageGrid as _Grid
 
         lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
         cell = max(float((hi - lo).max()) / cells, voxel_size)

@@ -19,6 +19,9 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from kernels.layout import block_key_np as _keys
+from kernels.layout import block_key_steps as _block_steps
+
 from ..errors import BftaichiError
 
 __all__ = ["ResourceError", "PeakRSS", "estimate_memory", "memory_budget", "check_memory",
@@ -176,19 +179,6 @@ def _frame_points(frame, stride: int, depth_max_m: float) -> tuple[np.ndarray, n
     rays_C = np.stack([x, y, np.ones_like(x)], axis=1)  # camera z = 1
     rays_W = rays_C @ T[:3, :3].T
     return rays_W * z[:, None] + T[:3, 3], rays_W, z, T[:3, 3]
-
-
-def _keys(idx: np.ndarray) -> np.ndarray:
-    """int64 key of integer cell coordinates (..., 3) (21 bits per axis, biased)."""
-    b = idx.astype(np.int64) + (1 << 20)
-    return (b[..., 0] << 42) | (b[..., 1] << 21) | b[..., 2]
-
-
-def _block_steps() -> np.ndarray:
-    """(27,) int64: key(b + offset) - key(b) for the 27 block offsets {-1, 0, 1}^3."""
-    off = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"),
-                   axis=-1).reshape(27, 3).astype(np.int64)
-    return (off[:, 0] << 42) + (off[:, 1] << 21) + off[:, 2]
 
 
 class SceneSample:

@@ -65,7 +65,7 @@ class PriorConfig:
 
 @dataclass(eq=False)
 class System:
-    """The posterior's linear system ``Q mu = h`` in the stencil layout of :mod:`kernels.pcg`:
+    """The posterior's linear system ``Q mu = h`` in the stencil layout of :mod:`kernels.stencil`:
     ``S`` (N, 27) float32 entries of Q at the offsets ``{-1, 0, 1}^3``, ``nbr`` (N, 27) the band's
     neighbour table, ``far`` Q's entries at offsets +-2 (curvature prior; None without it),
     ``h`` (N,) float32."""

@@ -56,6 +56,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
     ``free_space`` (``passes, anchored, free_voxels``), ``residual_history`` (the last solve's)
     and ``reason`` when PCG stopped early."""
+    from kernels.layout import CENTRE
     from kernels.pcg import pcg
 
     S, h = system.S, system.h
@@ -76,7 +77,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
                 n_pass -= 1
                 break
             active |= viol
-            S[viol, 13] += k
+            S[viol, CENTRE] += k
             h[viol] += k * band.tsdf[viol]
             mean, info = solve(mean)
             iterations += info["iterations"]

@@ -18,9 +18,10 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True
     probes average out; the marginal variance is never smaller than ``1/Q_ii``, so it is floored
     there (``stats["n_floored"]``). ``probes=False`` skips the probes: ``var`` is then ``1/Q_ii``,
     a lower bound, and the stats say so."""
-    from kernels.pcg import probe_variance
+    from kernels.layout import CENTRE
+    from kernels.probes import probe_variance
 
-    floor = (1.0 / system.S[:, 13].astype(np.float64)).astype(np.float32)
+    floor = (1.0 / system.S[:, CENTRE].astype(np.float64)).astype(np.float32)
     if not probes:
         return floor, {"n_probes": 0, "method": "conditional (1/Q_ii, no probes)"}
     var, stats = probe_variance(system.S, system.nbr, n_probes=solver.probes, seed=solver.seed,

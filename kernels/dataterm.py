@@ -1,0 +1,360 @@
+"""Taichi kernels of the data term: depth frames -> SDF samples -> the 27-point stencil.
+
+The math (normals, samples, rows, side gate, noise, accumulation, fixed point) is in the
+docstring of :mod:`kernels.observe`, whose :class:`~kernels.observe.Observer` is the Python
+front of these kernels: it checks the inputs and fills the per-frame parameter vector
+(``P_*`` slots below).
+
+Determinism: :func:`observe_frame` adds integers with atomics (bitwise reproducible whatever
+the thread schedule); every other kernel writes each output element from one thread.
+"""
+
+import taichi as ti
+
+from .funcs import block_row, block_rows, cell_corners, corner, floor_i32, trilinear
+from .layout import BLOCK, CENTRE
+from .lookup import band_index
+
+FRACTION_BITS = 32  # one maximal-weight contribution = 2^32 fixed-point units
+SATURATION = 1 << 62  # |entry| beyond this (before an add) is counted as saturated
+N_HALF = 27 - CENTRE  # accumulated stencil columns: offsets o = 13..26
+
+# Per-frame parameters, one float64 vector (a single cheap kernel argument):
+P_M = 0  # 9: M = R_WC K^-1 / voxel_size, row-major: pixel (u, v) at depth z is at voxel
+P_O = 9  # 3:    coordinate g = o + z M (u, v, 1), o = t_WC / voxel_size - 0.5 (corner c0 = floor g)
+P_R = 12  # 9: R_WC, row-major (normals to the world frame)
+P_K = 21  # 4: fx, fy, cx, cy (pixels)
+P_SPACING = 25  # sample spacing along the camera z axis, metres
+P_A = 26  # depth model a, metres
+P_B = 27  # depth model b, 1/metre
+P_Z0 = 28  # depth model z0, metres
+P_COS_MIN = 29  # floor of the incidence cosine
+P_VAR_EXTRA = 30  # sigma_pose^2 + sigma_model^2, metres^2
+P_RADIUS = 31  # normal tangent offset r, pixels
+P_JUMP = 32  # tan(normal_max_slope): neighbour depth jump limit is r D tan / f
+P_SCALE = 33  # fixed-point units per unit of S / h
+P_SHARE = 34  # most samples of one pixel that share a depth error in one voxel's estimate
+P_GATE = 35  # side gate: largest contradiction of y's side by the reference SDF, metres (0: off)
+N_PARAMS = 36
+
+# Per-row counters (columns of `counts`):
+C_VALID = 0  # strided pixels with valid depth
+C_USED = 1  # ... of which at least one sample was accepted
+C_ACCEPTED = 2  # accepted samples
+C_DROPPED = 3  # samples dropped because a corner of their cell is not in the band
+C_SATURATED = 4  # accumulator adds that started beyond SATURATION
+C_FALLBACK = 5  # used pixels whose normal fell back to the ray direction
+C_GATED = 6  # samples rejected by the reference gate (all corners in the band)
+N_COUNTS = 7
+COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropped", "saturated",
+               "normal_fallbacks", "samples_gated")
+
+# Row status in frame_rows (0: no sample, or gated):
+ROW_ACCEPTED = 1
+ROW_DROPPED = 2
+
+
+def column(ca: int, cb: int) -> int:
+    """Accumulator column ``o - 13`` of the entry between corners ca <= cb, o being the stencil
+    offset of ``corner(cb) - corner(ca)``."""
+    d = [x - y for x, y in zip(corner(cb), corner(ca))]
+    return (d[0] + 1) * 9 + (d[1] + 1) * 3 + (d[2] + 1) - CENTRE
+
+
+# -- per-pixel and per-sample math ------------------------------------------------------------
+
+@ti.func
+def ray_C(prm: ti.template(), u: ti.i32, v: ti.i32):
+    """K^-1 (u, v, 1), float32 (camera frame, z = 1: a point at depth z is z times this)."""
+    fx, fy = ti.cast(prm[P_K], ti.f32), ti.cast(prm[P_K + 1], ti.f32)
+    cx, cy = ti.cast(prm[P_K + 2], ti.f32), ti.cast(prm[P_K + 3], ti.f32)
+    return ti.Vector([(ti.cast(u, ti.f32) - cx) / fx, (ti.cast(v, ti.f32) - cy) / fy, 1.0])
+
+
+@ti.func
+def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32):
+    """Camera-frame unit normal of valid pixel (u, v) facing the camera, and a fallback flag:
+    ``(nx, ny, nz, fallback)`` float32 (module docstring, step 1)."""
+    H, W = depth.shape[0], depth.shape[1]
+    r = ti.cast(prm[P_RADIUS], ti.i32)
+    d = depth[v, u]
+    reach = ti.cast(prm[P_JUMP], ti.f32) * d * ti.cast(r, ti.f32)
+    jump_u = reach / ti.cast(prm[P_K], ti.f32)  # r D tan(max slope) / fx
+    jump_v = reach / ti.cast(prm[P_K + 1], ti.f32)
+    ray = ray_C(prm, u, v)
+    p = d * ray
+    # t = P(+r) - P(-r), with P(+-r) replaced by p where that neighbour is unusable
+    p_r, p_l, p_d, p_u = p, p, p, p
+    n_u, n_v = 0, 0  # usable neighbours per axis
+    if u + r < W:
+        dn = depth[v, u + r]
+        if dn > 0 and ti.abs(dn - d) <= jump_u:
+            p_r = dn * ray_C(prm, u + r, v)
+            n_u += 1
+    if u - r >= 0:
+        dn = depth[v, u - r]
+        if dn > 0 and ti.abs(dn - d) <= jump_u:
+            p_l = dn * ray_C(prm, u - r, v)
+            n_u += 1
+    if v + r < H:
+        dn = depth[v + r, u]
+        if dn > 0 and ti.abs(dn - d) <= jump_v:
+            p_d = dn * ray_C(prm, u, v + r)
+            n_v += 1
+    if v - r >= 0:
+        dn = depth[v - r, u]
+        if dn > 0 and ti.abs(dn - d) <= jump_v:
+            p_u = dn * ray_C(prm, u, v - r)
+            n_v += 1
+    t_u = p_r - p_l
+    t_v = p_d - p_u
+    n = t_u.cross(t_v)
+    nn = n.norm()
+    fallback = 1.0
+    if n_u > 0 and n_v > 0 and nn > 1e-6 * t_u.norm() * t_v.norm():  # sin(t_u, t_v) > 1e-6
+        n = n / nn
+        if n.dot(ray) > 0:
+            n = -n
+        fallback = 0.0
+    else:
+        n = -ray / ray.norm()
+    return ti.Vector([n[0], n[1], n[2], fallback])
+
+
+@ti.func
+def fixed_point(x: ti.f64) -> ti.i64:
+    """round(x) half away from zero, as int64 (no libm call)."""
+    return ti.cast(x + ti.select(x >= 0, 0.5, -0.5), ti.i64)
+
+
+# -- kernels ----------------------------------------------------------------------------------
+
+_NDA = ti.types.ndarray
+
+
+@ti.func
+def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys: ti.template(),
+                 block_table: ti.template(), ref: ti.template(), stride: ti.i32, m: ti.i32,
+                 mf: ti.i32, counts: ti.template(), scratch: ti.template(), blocks: ti.template(),
+                 sink: ti.template(), to_rows: ti.template()):
+    """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5): each pixel first counts
+    its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` with int64 atomics, or
+    (``to_rows``) writes every sample to ``sink = (row_idx, row_a, row_y, row_w, row_z,
+    row_status)`` at row ``(pixel slot) * (mf + m + 1) + (j + mf)``, pixel slot ``vs *
+    ceil(W / stride) + u / stride``. The row's counters go to ``counts[vs]``; ``scratch``
+    (rows, mf + m + 1, 8) holds the corner indices of the pixel the row is on, ``blocks``
+    (rows, mf + m + 1, 11) the row's block cache per sample index (block, 8 rows)."""
+    H, W = depth.shape[0], depth.shape[1]
+    n_us = (W + stride - 1) // stride
+    M = ti.Matrix([[prm[P_M + 3 * r + c] for c in ti.static(range(3))]
+                   for r in ti.static(range(3))])
+    o = ti.Vector([prm[P_O], prm[P_O + 1], prm[P_O + 2]])
+    spacing = prm[P_SPACING]
+    scale = prm[P_SCALE]
+    cos_min = prm[P_COS_MIN]
+    gate = prm[P_GATE]
+    v = vs * stride
+    n_valid, n_used, n_acc_row, n_drop, n_sat, n_fb, n_gate = 0, 0, 0, 0, 0, 0, 0
+    for jj in range(mf + m + 1):
+        blocks[vs, jj, 0] = 1 << 30  # no block has this coordinate: empty cache
+    for us in range(n_us):
+        u = us * stride
+        d = depth[v, u]
+        if d > 0:
+            n_valid += 1
+            nf = pixel_normal(depth, prm, u, v)
+            n_C = ti.Vector([nf[0], nf[1], nf[2]])
+            ray = ray_C(prm, u, v)
+            n_dot_ray = ti.cast(n_C.dot(ray), ti.f64)  # = -cos(angle) |ray| <= 0
+            cos_a = -n_dot_ray / ti.cast(ray.norm(), ti.f64)
+            D = ti.cast(d, ti.f64)
+            sd = (prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) / ti.max(cos_a, cos_min)
+            inv_var = 1.0 / (sd * sd + prm[P_VAR_EXTRA])  # 1 / sigma^2 of the pixel
+            m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
+            # pass 0 looks the cells up and counts the pixel's accepted samples n_acc (the
+            # corner indices wait in this row's scratch); pass 1 adds the accepted samples
+            # (or writes rows) with w = 1 / (n_acc sigma^2).
+            n_acc = 0
+            for j in range(-mf, m + 1):
+                z = D + ti.cast(j, ti.f64) * spacing
+                if z > 0:
+                    c0 = floor_i32(o + z * m_ray)
+                    b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
+                    # block cache per sample index j: sample j of the next pixels in the
+                    # row is mostly in the same block (8 voxels = many pixels)
+                    cached = ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])
+                    if (b != cached).any():
+                        rows = block_rows(block_keys, b)
+                        for t in ti.static(range(3)):
+                            blocks[vs, j + mf, t] = b[t]
+                        for t in ti.static(range(8)):
+                            blocks[vs, j + mf, 3 + t] = rows[t]
+                    idx = cell_corners(block_table, c0, b, ti.Vector(
+                        [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
+                    gated = 0
+                    if idx[7] >= 0 and gate > 0:
+                        # step 3b: the reference SDF interpolated at the sample must not
+                        # put it on the other side of the surface by more than the gate
+                        g = o + z * m_ray
+                        a = trilinear(g - ti.cast(c0, ti.f64))
+                        t_ref = ti.f64(0.0)
+                        for c in ti.static(range(8)):
+                            t_ref += a[c] * ti.cast(ref[idx[c]], ti.f64)
+                        y = ti.cast(j, ti.f64) * spacing * n_dot_ray
+                        # NaN (a corner without reference) fails both tests: kept
+                        if (y < 0 and t_ref > gate) or (y > 0 and t_ref < -gate):
+                            gated = 1
+                    for c in ti.static(range(8)):
+                        scratch[vs, j + mf, c] = idx[c]
+                    if gated:
+                        scratch[vs, j + mf, 7] = -2
+                        n_gate += 1
+                    elif idx[7] >= 0:
+                        n_acc += 1
+                    else:
+                        n_drop += 1
+            todo = n_acc
+            if ti.static(to_rows):
+                todo = 1  # every sample gets a row, accepted or not
+            if todo > 0:
+                w = inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64), prm[P_SHARE])
+                ws = w * scale
+                for j in range(-mf, m + 1):
+                    delta = ti.cast(j, ti.f64) * spacing
+                    z = D + delta
+                    if z <= 0:
+                        continue
+                    g = o + z * m_ray
+                    c0 = floor_i32(g)
+                    a = trilinear(g - ti.cast(c0, ti.f64))
+                    y = delta * n_dot_ray  # <n, x - p>, x - p = delta K^-1 (u, v, 1)
+                    idx = ti.Vector([scratch[vs, j + mf, c] for c in ti.static(range(8))])
+                    accepted = idx[7] >= 0
+                    if ti.static(to_rows):
+                        row_idx, row_a, row_y, row_w, row_z, row_status = ti.static(
+                            sink[0], sink[1], sink[2], sink[3], sink[4], sink[5])
+                        r = (vs * n_us + us) * (mf + m + 1) + mf + j
+                        row_status[r] = ti.select(accepted, ROW_ACCEPTED, ti.select(
+                            idx[7] == -1, ROW_DROPPED, 0))  # -2: gated
+                        row_y[r] = y
+                        row_w[r] = ti.select(accepted, w, 0.0)
+                        row_z[r] = z
+                        for c in ti.static(range(8)):
+                            row_idx[r, c] = idx[c]
+                            row_a[r, c] = a[c]
+                    elif accepted:
+                        S_acc, h_acc = ti.static(sink[0], sink[1])
+                        for ca in ti.static(range(8)):
+                            wa = ws * a[ca]
+                            for cb in ti.static(range(ca, 8)):
+                                old = ti.atomic_add(S_acc[idx[ca], ti.static(column(ca, cb))],
+                                                    fixed_point(wa * a[cb]))
+                                if old > ti.i64(SATURATION):
+                                    n_sat += 1
+                            old = ti.atomic_add(h_acc[idx[ca]], fixed_point(wa * y))
+                            if old > ti.i64(SATURATION) or old < -ti.i64(SATURATION):
+                                n_sat += 1
+            if n_acc > 0:
+                n_used += 1
+                n_acc_row += n_acc
+                if nf[3] > 0:
+                    n_fb += 1
+    counts[vs, C_VALID] = n_valid
+    counts[vs, C_USED] = n_used
+    counts[vs, C_ACCEPTED] = n_acc_row
+    counts[vs, C_DROPPED] = n_drop
+    counts[vs, C_SATURATED] = n_sat
+    counts[vs, C_FALLBACK] = n_fb
+    counts[vs, C_GATED] = n_gate
+
+
+@ti.kernel
+def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim=1),
+                   block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
+                   ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
+                   S_acc: _NDA(dtype=ti.i64, ndim=2), h_acc: _NDA(dtype=ti.i64, ndim=1),
+                   counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
+                   blocks: _NDA(dtype=ti.i32, ndim=3)):
+    """One frame into the accumulators ``S_acc``/``h_acc``, parallel over strided pixel rows
+    (:func:`observe_row`). Determinism: integer atomics only; the accumulated values are
+    bitwise reproducible whatever the thread schedule."""
+    ti.loop_config(block_dim=4)  # rows differ in valid pixels: small chunks balance threads
+    for vs in range((depth.shape[0] + stride - 1) // stride):
+        observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
+                     blocks, (S_acc, h_acc), False)
+
+
+@ti.kernel
+def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim=1),
+                  block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
+                  ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
+                  counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
+                  blocks: _NDA(dtype=ti.i32, ndim=3), row_idx: _NDA(dtype=ti.i32, ndim=2),
+                  row_a: _NDA(dtype=ti.f64, ndim=2), row_y: _NDA(dtype=ti.f64, ndim=1),
+                  row_w: _NDA(dtype=ti.f64, ndim=1), row_z: _NDA(dtype=ti.f64, ndim=1),
+                  row_status: _NDA(dtype=ti.i32, ndim=1)):
+    """One frame's samples into the ``row_*`` arrays (:meth:`Observer.frame_rows`), touching
+    no accumulator; the same per-row code as :func:`observe_frame`. Deterministic (each row
+    written by one thread, no atomics)."""
+    ti.loop_config(block_dim=4)
+    for vs in range((depth.shape[0] + stride - 1) // stride):
+        observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
+                     blocks, (row_idx, row_a, row_y, row_w, row_z, row_status), True)
+
+
+@ti.kernel
+def estimate_normals(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                   prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                   normals: ti.types.ndarray(dtype=ti.f32, ndim=3),
+                   fallback: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+    """World-frame unit normals (H, W, 3) of every valid pixel (0 elsewhere) and their fallback
+    flags (1 = ray direction used). Deterministic (one thread per pixel, no atomics)."""
+    R = ti.Matrix([[ti.cast(prm[P_R + 3 * r + c], ti.f32) for c in ti.static(range(3))]
+                   for r in ti.static(range(3))])
+    for v, u in ti.ndrange(depth.shape[0], depth.shape[1]):
+        n_W = ti.Vector([0.0, 0.0, 0.0])
+        fb = 0
+        if depth[v, u] > 0:
+            nf = pixel_normal(depth, prm, u, v)
+            n_W = R @ ti.Vector([nf[0], nf[1], nf[2]])
+            fb = ti.cast(nf[3], ti.i32)
+        for c in ti.static(range(3)):
+            normals[v, u, c] = n_W[c]
+        fallback[v, u] = fb
+
+
+@ti.kernel
+def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
+              block_table: ti.types.ndarray(dtype=ti.i32, ndim=2),
+              ijk: ti.types.ndarray(dtype=ti.i32, ndim=2),
+              S_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
+              h_acc: ti.types.ndarray(dtype=ti.i64, ndim=1),
+              inv_scale: ti.f64,
+              S: ti.types.ndarray(dtype=ti.f32, ndim=2),
+              h: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    """Fixed point -> float32 stencil: ``S[i, o] = S_acc[i, o - 13] / scale`` for o >= 13 and the
+    mirror ``S[i, o] = S_acc[j, 13 - o] / scale``, ``j`` = band index of ``ijk_i + offset(o)``
+    (0 if not in the band), for o < 13; ``h = h_acc / scale``. Deterministic (pure reads)."""
+    for i in range(S.shape[0]):
+        for o in ti.static(range(CENTRE, 27)):
+            S[i, o] = ti.cast(ti.cast(S_acc[i, o - CENTRE], ti.f64) * inv_scale, ti.f32)
+        v = ti.Vector([ijk[i, 0], ijk[i, 1], ijk[i, 2]])
+        b = ti.Vector([v[0] // BLOCK, v[1] // BLOCK, v[2] // BLOCK])
+        row = block_row(block_keys, b[0], b[1], b[2])  # >= 0: voxel i is in the band
+        loc = v - b * BLOCK
+        for o in range(CENTRE):
+            d = ti.Vector([o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1])
+            lc = loc + d
+            j = -1
+            if (lc >= 0).all() and (lc < BLOCK).all():  # neighbour in voxel i's block
+                j = block_table[row, lc[0] * 64 + lc[1] * 8 + lc[2]]
+            else:
+                j = band_index(block_keys, block_table, v[0] + d[0], v[1] + d[1], v[2] + d[2])
+            val = 0.0
+            if j >= 0:
+                val = ti.cast(ti.cast(S_acc[j, CENTRE - o], ti.f64) * inv_scale, ti.f32)
+            S[i, o] = val
+        h[i] = ti.cast(ti.cast(h_acc[i], ti.f64) * inv_scale, ti.f32)
+
+
+# -- Python side ------------------------------------------------------------------------------

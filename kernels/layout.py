@@ -1,0 +1,91 @@
+"""Constants of the voxel layout that several kernels share, and the block-key packing.
+
+numpy only (no Taichi): host code outside ``kernels`` (bftaichi, tools) may use it without
+initialising a backend. The Taichi side of the packing, :func:`kernels.funcs.block_key`, uses
+the same constants.
+
+Blocks. Voxels are grouped in blocks of ``BLOCK^3`` voxels (the TSDF's blocks and the band
+lookup's): block index ``b = floor(ijk / BLOCK)``, local voxel ``(a, b_, c) = ijk - BLOCK b``
+at position ``64 a + 8 b_ + c`` of the block (``BLOCK_VOXELS`` positions).
+
+Block keys. A block ``b`` in ``[-KEY_BIAS, KEY_BIAS)^3`` packs into one int64,
+``KEY_BITS = 21`` bits per axis: ``b0 + KEY_BIAS`` in bits 42..62, ``b1 + KEY_BIAS`` in bits
+21..41, ``b2 + KEY_BIAS`` in bits 0..20 (:func:`block_key_np`). Ascending keys are
+lexicographic blocks, and inside the range keys are linear in the coordinates:
+``key(b + d) = key(b) + key_step(d)`` (:func:`block_key_steps`).
+
+Stencil. The 27 offsets ``{-1, 0, 1}^3`` of a voxel's neighbours are numbered
+``o = (di+1)*9 + (dj+1)*3 + (dk+1)`` (:data:`OFFSETS`); ``o = CENTRE = 13`` is the voxel itself
+and ``26 - o`` is the opposite offset of ``o``. The optional *far* offsets are +-2 along each
+axis, numbered ``a = 2 * axis + (0: -2, 1: +2)`` (``FAR`` of them).
+"""
+
+import numpy as np
+
+BLOCK = 8  # voxels per block edge
+BLOCK_VOXELS = BLOCK ** 3
+KEY_BITS = 21  # bits per axis of a block key
+KEY_BIAS = 1 << (KEY_BITS - 1)  # block coordinates in [-2^20, 2^20) (8.4M voxels per axis)
+KEY_MASK = (1 << KEY_BITS) - 1
+
+STENCIL = 27  # offsets {-1, 0, 1}^3
+CENTRE = 13  # offset of the voxel itself: (0, 0, 0)
+
+FAR = 6  # far offsets +-2 along each axis (a = 2 * axis + (0: -2, 1: +2))
+
+
+def stencil_offset(o: int) -> tuple[int, int, int]:
+    """Voxel offset (di, dj, dk) in {-1, 0, 1}^3 of stencil offset
+    o = (di+1) 9 + (dj+1) 3 + (dk+1)."""
+    return o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1
+
+
+OFFSETS = np.array([stencil_offset(o) for o in range(STENCIL)], np.int32)
+"""(27, 3) int32: stencil offset o -> (di, dj, dk); o = CENTRE is the voxel itself."""
+
+
+def stencil_offsets(kind: int) -> tuple[list[int], list[float]]:
+    """Offsets of the 6-, 18- or 26-neighbour stencil and their membrane weights.
+
+    Returns ``(offsets, weights)``: the offset indices o (0..26, without the centre 13) with
+    ``|offset|^2 <= 1, 2, 3`` for ``kind = 6, 18, 26``, in ascending order, and the weights
+    ``1 / |offset|^2`` (offset in voxels: 1 for a face, 1/2 for an edge, 1/3 for a corner
+    neighbour). ``OPPOSITE(o) = 26 - o`` is in the list whenever ``o`` is, with the same weight.
+    """
+    if kind not in (6, 18, 26):
+        raise ValueError(f"stencil must be 6, 18 or 26 neighbours, got {kind!r}")
+    max_sq = {6: 1, 18: 2, 26: 3}[kind]
+    sq = (OFFSETS.astype(np.int64) ** 2).sum(axis=1)
+    offsets = [o for o in range(STENCIL) if 0 < sq[o] <= max_sq]
+    return offsets, [1.0 / float(sq[o]) for o in offsets]
+
+
+def block_key_np(blocks: np.ndarray) -> np.ndarray:
+    """int64 key of integer block coordinates (..., 3); ascending keys = lexicographic blocks.
+    The one definition of the packing (module docstring)."""
+    b = np.asarray(blocks, dtype=np.int64) + KEY_BIAS
+    return (b[..., 0] << 42) | (b[..., 1] << 21) | b[..., 2]
+
+
+def decode_keys(keys: np.ndarray) -> np.ndarray:
+    """Block coordinates (B, 3) int64 of block keys (B,) (inverse of :func:`block_key_np`)."""
+    k = np.asarray(keys, np.int64)
+    return np.stack([(k >> (2 * KEY_BITS)) & KEY_MASK, (k >> KEY_BITS) & KEY_MASK, k & KEY_MASK],
+                    axis=1) - KEY_BIAS
+
+
+def block_key_steps() -> np.ndarray:
+    """(27,) int64: ``block_key(b + offset_o) - block_key(b)`` for the stencil offsets (keys are
+    linear in the coordinates while every coordinate stays inside the key range)."""
+    return block_key_np(OFFSETS) - block_key_np(np.zeros(3, np.int64))
+
+
+def band_box(block_keys: np.ndarray) -> np.ndarray:
+    """(lo, hi) float64 (6,): the voxel box ``[8 b_min, 8 (b_max + 1)]`` of the blocks in
+    ``block_keys`` (per axis). Cells of the trilinear lattice based outside it have no corner in
+    those blocks."""
+    if len(block_keys) == 0:
+        return np.zeros(6)
+    blocks = decode_keys(block_keys)
+    return np.concatenate([blocks.min(axis=0) * BLOCK, (blocks.max(axis=0) + 1) * BLOCK]).astype(
+        np.float64)
