@@ -27,8 +27,8 @@ class Posterior:
     """The Gaussian posterior of the SDF over the narrow band.
 
     Attributes:
-        band: the :class:`~bftaichi.stages.band.Band` (``ijk``, ``tsdf``, ``weight``, ``core``
-            and the voxel lookup are also attributes of the posterior).
+        band: the :class:`~bftaichi.stages.band.Band` (its ``ijk``, ``tsdf`` and ``weight``
+            are also attributes of the posterior).
         voxel_size: metres.
         mean: (N,) float32 MAP signed distance, metres (positive in free space).
         var: (N,) float32 estimated marginal variance ``diag(Q^-1)``, metres^2.
@@ -59,7 +59,6 @@ class Posterior:
     ijk = property(lambda self: self.band.ijk, doc="(N, 3) int32 band voxel indices, sorted.")
     tsdf = property(lambda self: self.band.tsdf, doc="(N,) float32 bootstrap TSDF, metres.")
     weight = property(lambda self: self.band.weight, doc="(N,) float32 bootstrap weight.")
-    core = property(lambda self: self.band.core, doc="(N,) bool, in the undilated band.")
 
     @property
     def sigma(self) -> np.ndarray:

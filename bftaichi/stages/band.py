@@ -37,7 +37,6 @@ class Band:
         ijk: (N, 3) int32 voxel indices (centre ``(ijk + 0.5) * voxel_size``).
         tsdf: (N,) float32 bootstrap TSDF, metres (the dilation voxels get the fill value).
         weight: (N,) float32 bootstrap weight (0: not observed, a dilation voxel).
-        core: (N,) bool, in the undilated band ``|tsdf| < alpha tau``.
         block_keys: (B,) int64 sorted block keys and ``block_table`` (B, 512) int32 band index
             per voxel of each block, -1 outside (:mod:`kernels.lookup`): voxel -> band index.
         nbr: (N, 27) int32 band index of each stencil neighbour (-1 outside), or None for a
@@ -47,7 +46,6 @@ class Band:
     ijk: np.ndarray
     tsdf: np.ndarray
     weight: np.ndarray
-    core: np.ndarray
     block_keys: np.ndarray
     block_table: np.ndarray
     nbr: np.ndarray | None = None
@@ -69,13 +67,13 @@ class Band:
     @classmethod
     def from_voxels(cls, ijk, tsdf, weight) -> "Band":
         """A band of known voxels (a saved ``band.npz``) with its lookup tables, no neighbour
-        table; ``core`` is taken as the observed voxels."""
+        table."""
         from kernels.lookup import build_block_table
 
         ijk = np.asarray(ijk, np.int32)
         keys, table = build_block_table(ijk)
         weight = np.asarray(weight, np.float32)
-        return cls(ijk=ijk, tsdf=np.asarray(tsdf, np.float32), weight=weight, core=weight > 0,
+        return cls(ijk=ijk, tsdf=np.asarray(tsdf, np.float32), weight=weight,
                    block_keys=keys, block_table=table)
 
 
@@ -89,6 +87,6 @@ def build_band(voxels: dict, bootstrap_trunc_m: float) -> tuple[Band, np.ndarray
     if len(b["ijk"]) == 0:
         raise NoSurfaceError("the narrow band is empty: no observed voxel has |tsdf| below the "
                              "bootstrap truncation, so there is no surface to refine")
-    band = Band(ijk=b["ijk"], tsdf=b["tsdf"], weight=b["weight"], core=b["core"],
+    band = Band(ijk=b["ijk"], tsdf=b["tsdf"], weight=b["weight"],
                 block_keys=b["block_keys"], block_table=b["block_table"], nbr=b["nbr"])
     return band, b["x0"]
