@@ -88,10 +88,11 @@ def _print_summary(out: Path, verbose: bool = False) -> None:
         click.echo(format_table(report["metrics"], keys))
         u = report.get("uncertainty")
         if u:
-            click.echo(f"sigma vs true error ({u['n']:,} observed voxels within "
-                       f"{u['near_voxels']:g} voxel of the surface): coverage of |e| <= 1/2/3 "
-                       f"sigma {u['coverage@1sigma']:.1%} / {u['coverage@2sigma']:.1%} / "
-                       f"{u['coverage@3sigma']:.1%} (Gaussian 68.3 / 95.4 / 99.7 %), "
+            click.echo(f"vertex sigma vs true error ({u['n']:,} vertices of mesh.ply): "
+                       f"coverage of |e| <= 1/2/3 sigma {u['coverage@1sigma']:.1%} / "
+                       f"{u['coverage@2sigma']:.1%} / {u['coverage@3sigma']:.1%} (Gaussian "
+                       f"68.3 / 95.4 / 99.7 %), NLL minus the best constant sigma's "
+                       f"{u['nll_vs_constant']:+.2f} nats (below 0: informative), "
                        f"Spearman {u['spearman']:.2f}")
     else:
         click.echo("no ground-truth mesh: geometry metrics skipped")

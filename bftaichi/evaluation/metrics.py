@@ -26,7 +26,7 @@ from ..errors import BftaichiError, DataError
 
 __all__ = ["geometry_metrics", "surface_distances", "surface_sdf", "uncertainty_metrics",
            "load_mesh", "format_table", "DEFAULT_THRESHOLDS_MM", "near_surface_voxels",
-           "band_uncertainty"]
+           "band_uncertainty", "vertex_errors", "vertex_uncertainty"]
 
 #: Default F-score thresholds (mm), as in the BayesFusion-SDF paper.
 DEFAULT_THRESHOLDS_MM = (5, 10, 20, 50)
@@ -263,14 +263,23 @@ def uncertainty_metrics(mean: np.ndarray, sigma: np.ndarray, truth: np.ndarray,
                         n_bins: int = 20) -> dict:
     """How honest is ``sigma`` about the error ``e = mean - truth`` (DESIGN.md section 6)?
 
-    Returns a JSON-ready dict: ``n``; ``rms_error_m``; ``median_sigma_m``;
-    ``coverage@1sigma``, ``@2sigma``, ``@3sigma`` (fraction with ``|e| <= k sigma``; a Gaussian
-    gives 0.683 / 0.954 / 0.997); ``median_z`` (median of ``|e| / sigma``, 0.674 for a Gaussian:
-    above, sigma is overconfident; below, conservative); ``spearman`` (rank correlation of sigma
-    with ``|e|``; > 0 means sigma ranks the errors); ``ause`` (area between the sparsification
-    curve, RMS error of the voxels kept after removing the most uncertain fraction, and the
-    oracle curve that removes the largest errors first, over ``n_bins`` fractions; metres, 0 is
-    perfect ranking).
+    Returns a JSON-ready dict:
+
+    - ``n``; ``rms_error_m``; ``mean_error_m``; ``median_error_m``; ``median_sigma_m``;
+    - ``coverage@1sigma``, ``@2sigma``, ``@3sigma``: fraction with ``|e| <= k sigma`` (a
+      Gaussian gives 0.683 / 0.954 / 0.997);
+    - ``median_z``: median of ``|e| / sigma`` (0.674 for a Gaussian; above, sigma is
+      overconfident; below, conservative);
+    - ``nll``: mean Gaussian negative log-likelihood of ``e`` under ``N(0, sigma^2)`` (nats), and
+      ``nll_vs_constant``: ``nll`` minus the NLL under the best constant sigma chosen with
+      hindsight, ``sqrt(mean e^2)``. Below 0, sigma tells more than one number would
+      (informative); above, a constant would have served the user better;
+    - ``spearman``: rank correlation of sigma with ``|e|`` (> 0: sigma ranks the errors);
+    - ``sparsification``: mean ``|e|`` of what is left after removing the fraction
+      ``i / n_bins`` (i = 0..n_bins-1) most uncertain values, and ``ause``: its mean gap over
+      the oracle curve that removes the largest errors first (metres, 0 is perfect ranking);
+    - ``top10_ratio``: mean ``|e|`` of the 10 % most uncertain values over the mean ``|e|`` of
+      all (1 when sigma says nothing about where the errors are; higher is better).
 
     Raises:
         BftaichiError: different lengths, fewer than 2 values, or non-finite input.
@@ -287,27 +296,65 @@ def uncertainty_metrics(mean: np.ndarray, sigma: np.ndarray, truth: np.ndarray,
             np.all(np.isfinite(truth))):
         raise BftaichiError("uncertainty_metrics: mean, sigma and truth must be finite")
     err = np.abs(mean - truth)
-    z = err / np.maximum(sigma, np.finfo(np.float64).tiny)
-    out = {"n": int(len(err)), "rms_error_m": float(np.sqrt(np.mean(err ** 2))),
+    tiny = np.finfo(np.float64).tiny
+    sigma = np.maximum(sigma, tiny)
+    z = err / sigma
+    n = len(err)
+    out = {"n": int(n), "rms_error_m": float(np.sqrt(np.mean(err ** 2))),
+           "mean_error_m": float(err.mean()), "median_error_m": float(np.median(err)),
            "median_sigma_m": float(np.median(sigma))}
     for k in (1, 2, 3):
         out[f"coverage@{k}sigma"] = float(np.mean(z <= k))
     out["median_z"] = float(np.median(z))
+    half_log_2pi = 0.5 * math.log(2 * math.pi)
+    nll = float(np.mean(np.log(sigma) + 0.5 * z * z) + half_log_2pi)
+    const = max(float(np.sqrt(np.mean(err ** 2))), tiny)
+    out["nll"] = nll
+    out["nll_vs_constant"] = nll - (math.log(const) + 0.5 + half_log_2pi)
     rho = spearmanr(sigma, err).statistic
     out["spearman"] = float(rho) if np.isfinite(rho) else 0.0
 
     def sparsification(order):
-        sq = err[order] ** 2
-        # RMS of the values kept after removing the first fraction f of ``order``.
-        tail = np.cumsum(sq[::-1])[::-1]
-        fracs = np.arange(n_bins) / n_bins
-        start = (fracs * len(err)).astype(int)
-        return np.sqrt(tail[start] / (len(err) - start))
+        # mean |e| of the values kept after removing the first fraction f of ``order``
+        tail = np.cumsum(err[order][::-1])[::-1]
+        start = (np.arange(n_bins) / n_bins * n).astype(int)
+        return tail[start] / (n - start)
 
     by_sigma = sparsification(np.argsort(-sigma, kind="stable"))
     oracle = sparsification(np.argsort(-err, kind="stable"))
+    out["sparsification"] = [float(v) for v in by_sigma]
     out["ause"] = float(np.mean(by_sigma - oracle))
+    top = np.argsort(-sigma, kind="stable")[:max(1, n // 10)]
+    out["top10_ratio"] = float(err[top].mean() / max(err.mean(), tiny))
     return out
+
+
+def vertex_errors(vertices: np.ndarray, gt) -> np.ndarray:
+    """The exact distance (metres) of each vertex to the ground-truth mesh ``gt``: the
+    point-to-triangle distance to its closest triangle (libigl's AABB tree), i.e. ``|phi_true|``
+    at the vertex, where the posterior mean is 0 (DESIGN.md section 6). No sampling floor."""
+    import igl
+
+    _check_mesh(gt, "gt")
+    v = np.ascontiguousarray(np.asarray(vertices, np.float64).reshape(-1, 3))
+    if len(v) == 0:
+        return np.zeros(0)
+    d2, _, _ = igl.point_mesh_squared_distance(
+        v, np.ascontiguousarray(gt.vertices, dtype=np.float64),
+        np.ascontiguousarray(gt.faces, dtype=np.int64))
+    return np.sqrt(np.maximum(d2, 0.0))
+
+
+def vertex_uncertainty(mesh, gt, attribute: str = "sigma") -> dict | None:
+    """Calibration of the vertex ``attribute`` (default ``sigma``, metres) of ``mesh`` (a
+    ``trimesh.Trimesh`` with ``vertex_attributes``) against its exact vertex errors
+    (:func:`vertex_errors`): :func:`uncertainty_metrics` with ``e = |phi_true(v)|``. None when the
+    mesh has fewer than 2 vertices."""
+    sigma = np.asarray(mesh.vertex_attributes[attribute], np.float64)
+    if len(sigma) < 2:
+        return None
+    err = vertex_errors(mesh.vertices, gt)
+    return uncertainty_metrics(err, sigma, np.zeros_like(err))
 
 
 # --------------------------------------------------------------------------------------------

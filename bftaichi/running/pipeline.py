@@ -286,10 +286,10 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
             post_mesh = post.extract_mesh()  # step 7
     timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
     metrics, distances = {}, {}
-    uncertainty = None
+    uncertainty = band_unc = None
     if gt is not None:
         from ..evaluation.metrics import (band_uncertainty, metrics_from_distances,
-                                          surface_distances)
+                                          surface_distances, vertex_uncertainty)
 
         e = cfg.eval
         with timer("metrics"):
@@ -299,7 +299,8 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                     metrics[name] = metrics_from_distances(distances[name], e.thresholds_mm,
                                                            len(m.faces))
             if post is not None:
-                uncertainty = band_uncertainty(post, gt, e.near_voxels, e.seed)
+                uncertainty = vertex_uncertainty(post_mesh, gt)
+                band_unc = band_uncertainty(post, gt, e.near_voxels, e.seed)
     with timer("write"):
         colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None
         write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors)
@@ -354,6 +355,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                  "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
         "metrics": metrics,
         "uncertainty": uncertainty,
+        "band_uncertainty": band_unc,
         "cameras": cameras,
         "has_ground_truth": gt is not None,
         "memory": {"estimate": memory, "peak_rss": timer.rss.to_dict() if timer.rss else None},

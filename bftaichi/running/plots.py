@@ -10,14 +10,15 @@ absent is skipped:
 - ``sigma_histogram.png`` (posterior): posterior sigma of the near-surface band voxels
   (``|mean| <= eval.near_voxels`` voxels, weight > 0) and of the ``mesh.ply`` vertices;
 - ``calibration.png`` (posterior and ground truth): observed against Gaussian-expected coverage
-  of ``|e| <= k sigma`` over the voxels of ``report["uncertainty"]``;
+  of ``|e| <= k sigma`` over the vertices of ``mesh.ply`` (``report["uncertainty"]``: ``e`` the
+  exact distance of the vertex to the true surface, ``sigma`` its vertex sigma);
 - ``pcg_residual.png`` (posterior): the MAP PCG relative residual against iteration.
 
 "posterior" means a ``run.stages = "full"`` run (a ``"tsdf_only"`` run gets the TSDF curves of the
 first two plots and nothing else). The curves use :func:`bftaichi.evaluation.metrics.surface_distances` with
 the run's ``eval.n_samples`` and ``eval.seed``, so at the run's ``eval.thresholds_mm`` they are the
-report's precision and recall exactly; the calibration uses the voxels and truth of
-:func:`bftaichi.evaluation.metrics.band_uncertainty`.
+report's precision and recall exactly; the calibration uses the vertices and errors of
+:func:`bftaichi.evaluation.metrics.vertex_uncertainty`.
 
 Figures are drawn on a bare ``matplotlib.figure.Figure`` (Agg canvas, no pyplot state, so the
 caller's backend is left alone) and written atomically.
@@ -33,10 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BftaichiError
-from ..evaluation.metrics import near_surface_voxels, threshold_curves
+from ..evaluation.metrics import threshold_curves
 
-__all__ = ["write_run_plots", "curve_thresholds_mm", "band_errors",
-           "coverage_curve", "save_png"]
+__all__ = ["write_run_plots", "curve_thresholds_mm", "coverage_curve", "save_png"]
 
 #: The run's meshes, in plotting order, with their legend labels.
 MESHES = {"mesh.ply": "posterior mean (mesh.ply)",
@@ -51,18 +51,6 @@ def curve_thresholds_mm(voxel_size_m: float, extra_mm=(), n: int = 40) -> np.nda
     vs_mm = 1000.0 * float(voxel_size_m)
     grid = np.geomspace(0.5 * vs_mm, 50.0 * vs_mm, int(n))
     return np.unique(np.concatenate([grid, np.asarray(extra_mm, np.float64)]))
-
-
-def band_errors(post, gt, near_voxels: float = 1.0, seed: int = 0):
-    """The (error, sigma) pairs that :func:`bftaichi.evaluation.metrics.band_uncertainty` judges (the
-    voxels of :func:`bftaichi.evaluation.metrics.near_surface_voxels`), ``error = mean - phi``, float64
-    metres; None when fewer than 2 voxels qualify."""
-
-    near = near_surface_voxels(post, gt, near_voxels, seed)
-    if near is None:
-        return None
-    mean, sigma, phi = near
-    return mean.astype(np.float64) - phi, sigma.astype(np.float64)
 
 
 def coverage_curve(error: np.ndarray, sigma: np.ndarray, k: np.ndarray):
@@ -192,7 +180,7 @@ def _plot_calibration(error, sigma, report: dict, path: Path) -> Path:
     expected, observed = coverage_curve(error, sigma, k)
     fig, ax = _figure((5.2, 5.0))
     ax.plot([0, 1], [0, 1], color="0.5", lw=1, ls="--", label="calibrated (Gaussian)")
-    ax.plot(expected, observed, color="C0", label=f"posterior ({len(error)} voxels)")
+    ax.plot(expected, observed, color="C0", label=f"posterior ({len(error)} vertices)")
     e3, o3 = coverage_curve(error, sigma, np.array([1.0, 2.0, 3.0]))
     ax.plot(e3, o3, ls="none", marker="o", ms=4, color="C0")
     for kk, x, y in zip((1, 2, 3), e3, o3):
@@ -203,12 +191,11 @@ def _plot_calibration(error, sigma, report: dict, path: Path) -> Path:
             "68.3 / 95.4 / 99.7 % Gaussian\n\n"
             "above the diagonal: sigma conservative\nbelow: overconfident",
             transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
-    near = report["config"]["eval"]["near_voxels"]
     ax.set(xlabel="expected coverage erf(k / sqrt 2) [fraction]",
            ylabel="observed fraction with |error| <= k sigma",
            xlim=(0, 1), ylim=(0, 1.01), aspect="equal",
-           title=f"{report['scene']}: sigma calibration\n(band voxels within {near:g} voxel "
-                 "of the true surface)")
+           title=f"{report['scene']}: vertex sigma calibration\n(mesh.ply vertices, error = "
+                 "exact distance to the true surface)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
     return save_png(fig, path)
@@ -249,7 +236,7 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
         ``report`` is not a run's report.
     """
     from ..io import ensure_out_dir, read_mesh_ply
-    from ..evaluation.metrics import load_mesh, surface_distances
+    from ..evaluation.metrics import load_mesh, surface_distances, vertex_errors
 
     out = Path(out_dir)
     if not isinstance(report, dict) or not {"scene", "tsdf", "config", "solver"} <= set(report):
@@ -283,8 +270,10 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
         _, _, attrs = read_mesh_ply(out / "mesh.ply")
         written.append(_plot_sigma_histogram(post, attrs.get("sigma"), report,
                                              plots / "sigma_histogram.png"))
-        pairs = (band_errors(post, gt, float(ev["near_voxels"]), int(ev["seed"]))
-                 if gt is not None else None)
+        pairs = None
+        if gt is not None and attrs.get("sigma") is not None and len(attrs["sigma"]) >= 2:
+            v, _, _ = read_mesh_ply(out / "mesh.ply")
+            pairs = vertex_errors(v, gt), np.asarray(attrs["sigma"], np.float64)
         if pairs is not None:
             written.append(_plot_calibration(*pairs, report, plots / "calibration.png"))
         if report["solver"]["map"].get("residual_history"):
