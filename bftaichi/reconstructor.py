@@ -35,7 +35,7 @@ from .geometry import check_K, check_pose
 from .posterior import Posterior
 from .stages.band import build_band
 from .stages.integrate import TSDFVolume
-from .stages.observe import estimate_extra_noise, make_observer, observe
+from .stages.observe import estimate_extra_noise, local_misfit, make_observer, observe
 from .stages.prior import add_prior
 from .stages.solve import solve_map
 from .stages.variance import estimate_variance
@@ -140,6 +140,12 @@ class Reconstructor:
         lap("map")
         var, var_stats = estimate_variance(system, cfg.solver, band.ijk, probes=variance)  # 6
         lap("variance")
+        if o.local_noise:
+            scale, misfit = local_misfit(observer, frame_iter(frames, "misfit") if frame_iter
+                                         else frames, mean, band.nbr, o.stride)
+            var = var * scale
+            var_stats = dict(var_stats, local_noise=misfit)
+            lap("misfit")
         self.posterior = Posterior(
             band=band, voxel_size=vs, mean=mean, var=np.asarray(var, np.float32),
             observation=o, trunc_m=tau, bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,

@@ -50,6 +50,12 @@ COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropp
                "normal_fallbacks", "samples_gated")
 
 # Row status in frame_rows (0: no sample, or gated):
+MODE_ACCUMULATE, MODE_ROWS, MODE_MISFIT = 0, 1, 2  # what observe_row does with a sample
+#: Fixed-point units per unit of a misfit sum (chi^2 shares and pixel shares, both <= ~100).
+MISFIT_SCALE = float(1 << 24)
+#: Largest chi^2 one sample adds to the misfit (a 10-sigma residual): one gross residual (an
+#: occlusion edge) marks its voxels as misfit without swamping their neighbours' sums.
+MISFIT_CAP = 100.0
 ROW_ACCEPTED = 1
 ROW_DROPPED = 2
 
@@ -136,7 +142,7 @@ _NDA = ti.types.ndarray
 def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys: ti.template(),
                  block_table: ti.template(), ref: ti.template(), stride: ti.i32, m: ti.i32,
                  mf: ti.i32, counts: ti.template(), scratch: ti.template(), blocks: ti.template(),
-                 sink: ti.template(), to_rows: ti.template()):
+                 sink: ti.template(), mode: ti.template()):
     """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5): each pixel first counts
     its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` with int64 atomics, or
     (``to_rows``) writes every sample to ``sink = (row_idx, row_a, row_y, row_w, row_z,
@@ -168,7 +174,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
             n_dot_ray = ti.cast(n_C.dot(ray), ti.f64)  # = -cos(angle) |ray| <= 0
             cos_a = -n_dot_ray / ti.cast(ray.norm(), ti.f64)
             D = ti.cast(d, ti.f64)
-            sd = (prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) / ti.max(cos_a, cos_min)
+            # y = (z - D) <n, ray>: an axial depth error e moves y by e |<n, ray>|
+            sd = (prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) * ti.max(cos_a, cos_min) \
+                * ti.cast(ray.norm(), ti.f64)
             inv_var = 1.0 / (sd * sd + prm[P_VAR_EXTRA])  # 1 / sigma^2 of the pixel
             m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
             # pass 0 looks the cells up and counts the pixel's accepted samples n_acc (the
@@ -214,7 +222,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
                     else:
                         n_drop += 1
             todo = n_acc
-            if ti.static(to_rows):
+            if ti.static(mode == MODE_ROWS):
                 todo = 1  # every sample gets a row, accepted or not
             if todo > 0:
                 w = inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64), prm[P_SHARE])
@@ -230,7 +238,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
                     y = delta * n_dot_ray  # <n, x - p>, x - p = delta K^-1 (u, v, 1)
                     idx = ti.Vector([scratch[vs, j + mf, c] for c in ti.static(range(8))])
                     accepted = idx[7] >= 0
-                    if ti.static(to_rows):
+                    if ti.static(mode == MODE_ROWS):
                         row_idx, row_a, row_y, row_w, row_z, row_status = ti.static(
                             sink[0], sink[1], sink[2], sink[3], sink[4], sink[5])
                         r = (vs * n_us + us) * (mf + m + 1) + mf + j
@@ -242,6 +250,21 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
                         for c in ti.static(range(8)):
                             row_idx[r, c] = idx[c]
                             row_a[r, c] = a[c]
+                    elif ti.static(mode == MODE_MISFIT):
+                        if accepted:
+                            # chi^2 of the sample against the posterior mean, capped, and its
+                            # share of the pixel (1 / min(n_acc, share)), spread by a
+                            mu, R_acc = ti.static(sink[0], sink[1])
+                            r = y
+                            for c in ti.static(range(8)):
+                                r -= a[c] * ti.cast(mu[idx[c]], ti.f64)
+                            share = w / inv_var
+                            q = ti.min(w * r * r, share * MISFIT_CAP)
+                            for c in ti.static(range(8)):
+                                ti.atomic_add(R_acc[idx[c], 0],
+                                              fixed_point(a[c] * q * MISFIT_SCALE))
+                                ti.atomic_add(R_acc[idx[c], 1],
+                                              fixed_point(a[c] * share * MISFIT_SCALE))
                     elif accepted:
                         S_acc, h_acc = ti.static(sink[0], sink[1])
                         for ca in ti.static(range(8)):
@@ -281,7 +304,7 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndi
     ti.loop_config(block_dim=4)  # rows differ in valid pixels: small chunks balance threads
     for vs in range((depth.shape[0] + stride - 1) // stride):
         observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
-                     blocks, (S_acc, h_acc), False)
+                     blocks, (S_acc, h_acc), MODE_ACCUMULATE)
 
 
 @ti.kernel
@@ -299,7 +322,7 @@ def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim
     ti.loop_config(block_dim=4)
     for vs in range((depth.shape[0] + stride - 1) // stride):
         observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
-                     blocks, (row_idx, row_a, row_y, row_w, row_z, row_status), True)
+                     blocks, (row_idx, row_a, row_y, row_w, row_z, row_status), MODE_ROWS)
 
 
 @ti.kernel
@@ -358,3 +381,21 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
 
 
 # -- Python side ------------------------------------------------------------------------------
+
+
+@ti.kernel
+def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim=1),
+                 block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
+                 ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
+                 mu: _NDA(dtype=ti.f32, ndim=1), R_acc: _NDA(dtype=ti.i64, ndim=2),
+                 counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
+                 blocks: _NDA(dtype=ti.i32, ndim=3)):
+    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 2): per voxel,
+    ``sum_k a_k min(w_k r_k^2, MISFIT_CAP s_k)`` and ``sum_k a_k s_k`` in units of
+    1 / MISFIT_SCALE, over the accepted samples k (the same samples, rows and weights as
+    :func:`observe_frame`), ``r_k = y_k - a_k . mu`` and ``s_k = w_k sigma_k^2`` the sample's
+    share of its pixel. Integer atomics: deterministic."""
+    ti.loop_config(block_dim=4)
+    for vs in range((depth.shape[0] + stride - 1) // stride):
+        observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
+                     blocks, (mu, R_acc), MODE_MISFIT)

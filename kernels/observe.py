@@ -82,7 +82,8 @@ import taichi as ti
 from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B, P_COS_MIN,
                        P_GATE, P_JUMP, P_K, P_M, P_O, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
                        P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, estimate_normals,
-                       finalize_stencil, observe_frame, observe_rows)
+                       MISFIT_SCALE, finalize_stencil, misfit_frame, observe_frame,
+                       observe_rows)
 from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table
 
@@ -335,6 +336,35 @@ class Observer:
         fallback = np.zeros(depth.shape, np.int32)
         estimate_normals(depth, prm, normals, fallback)
         return normals, fallback.astype(bool)
+
+    def misfit(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, mu: np.ndarray,
+               stride: int = 1, sigma_pose_m: float | None = None) -> None:
+        """Add one frame's misfit against the band values ``mu`` (N,) (metres; the posterior
+        mean) to the sums :meth:`misfit_sums` returns: the same samples and weights as
+        :meth:`integrate`, nothing else is touched. One kernel launch; deterministic."""
+        stride = self._check_stride(stride)
+        depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
+        mu = np.ascontiguousarray(mu, np.float32)
+        if mu.shape != (self.n_voxels,):
+            raise ValueError(f"mu has shape {mu.shape}, expected ({self.n_voxels},)")
+        if getattr(self, "_R_acc", None) is None:
+            self._R_acc = ti.ndarray(ti.i64, shape=(max(self.n_voxels, 1), 2))
+            self._R_acc.fill(0)
+        n_vs = (depth.shape[0] + stride - 1) // stride
+        counts = np.zeros((n_vs, N_COUNTS), np.int64)
+        if self.n_voxels:
+            misfit_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride,
+                         self.m, self.mf, mu, self._R_acc, counts, *self._scratch(n_vs))
+
+    def misfit_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(chi2, share)`` (N,) float64 over the frames given to :meth:`misfit`: per voxel
+        ``sum_k a_k min(w_k r_k^2, cap)`` and ``sum_k a_k s_k`` (``s_k = w_k sigma_k^2``, the
+        sample's share of its pixel: ``share`` counts the pixels reaching the voxel). Their
+        ratio is the voxel's reduced chi^2 (1 where the residuals match the noise model)."""
+        if getattr(self, "_R_acc", None) is None or not self.n_voxels:
+            return np.zeros(self.n_voxels), np.zeros(self.n_voxels)
+        R = self._R_acc.to_numpy()[:self.n_voxels] / MISFIT_SCALE
+        return R[:, 0], R[:, 1]
 
     # -- result ------------------------------------------------------------------------------
     def diagonal(self) -> np.ndarray:

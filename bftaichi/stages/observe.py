@@ -14,17 +14,18 @@ import numpy as np
 from ..checks import check_choice, check_range
 from ..errors import ConfigError
 
-__all__ = ["ObservationConfig", "make_observer", "observe", "estimate_extra_noise"]
+__all__ = ["ObservationConfig", "make_observer", "observe", "estimate_extra_noise",
+           "local_misfit"]
 
 
 @dataclass
 class ObservationConfig:
     """``[observation]``: depth pixels -> SDF samples (DESIGN.md 3.3)."""
 
-    stride: int = 2
-    """Use every n-th pixel in u and v (pixels; 1 = all). Neighbouring pixels at stride 1 see
-    nearly the same surface point; 2 keeps the information of a 1 cm voxel grid at a quarter
-    of the cost."""
+    stride: int = 1
+    """Use every n-th pixel in u and v (pixels; 1 = all, as the TSDF does). A larger stride is
+    faster but throws information away: the posterior then sees less than the bootstrap it
+    should improve on (at 2, a quarter of the pixels; measured in docs/measurements.md)."""
 
     spacing_voxels: float = 1.0
     """Spacing of the samples along each ray within ``+-tsdf.trunc_m``, voxels."""
@@ -39,15 +40,22 @@ class ObservationConfig:
     depth_z0_m: float = 0.4
     """Reference depth ``z0``, metres."""
 
-    cos_min: float = 0.3
-    """Floor of the incidence cosine (no unit): the depth error grows as ``1/cos(angle)``
-    between ray and normal, capped at ``1/cos_min`` so grazing pixels still count a little."""
+    cos_min: float = 1.0
+    """How the noise of a sample depends on the incidence angle: ``sigma = sigma_z(D)
+    max(cos(angle), cos_min)`` (no unit, in (0, 1]). A sample observes ``y = (z - D) <n, ray>``,
+    so an axial depth error moves it by ``sigma_z cos(angle)``; but the normal estimated from
+    neighbouring pixels (which ``y`` depends on) gets worse as the surface turns away. 1 (the
+    default) keeps ``sigma_z`` at every angle: over the development suite it gave a lower vertex
+    error than weighting grazing pixels up (``cos``) or down (``1 / cos``, the previous model)
+    (docs/measurements.md)."""
 
     sigma_pose_m: float = 0.0
     """Pose (trajectory) error folded into every sample, metres (0 for ground-truth poses)."""
 
-    sigma_model_m: float = 0.001
-    """Model error of a trilinear SDF within one voxel and of the normal estimate, metres."""
+    sigma_model_m: float = 0.0
+    """Extra per-pixel noise, metres, added to every sample in quadrature. Model error (the
+    trilinear SDF, the normal estimate) is not independent per pixel, so it is not modelled
+    here but by ``local_noise``; 0 by default."""
 
     front: float = 2.0
     """How far in front of the measured surface a pixel's samples reach, in units of the
@@ -72,6 +80,14 @@ class ObservationConfig:
     (:func:`estimate_extra_noise`), and add it to ``sigma_model_m`` in quadrature. The residuals
     are those of the bootstrap, so its own rendering error counts too. report.json:
     ``solver.observations.noise_fit``; band.npz: ``sigma_extra_m``."""
+
+    local_noise: bool = True
+    """Scale each voxel's posterior variance by the reduced chi^2 of the data around it
+    (:func:`local_misfit`): a second pass over the frames compares every sample with the
+    posterior mean. Where the data agree with the model the scale is ~1; where they disagree
+    (thin sheets, occlusion edges, creases finer than a voxel, misregistered frames) sigma grows
+    with the misfit, which is where the surface errors are. report.json:
+    ``solver.variance.local_noise``."""
 
     count_once: str = "voxel"
     """How a pixel's samples, which share one depth error, split its information ``1/sigma^2``:
@@ -125,6 +141,37 @@ def observe(observer, frames, stride: int):
     for frame in frames:
         observer.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=stride)
     return observer.finalize()
+
+
+def local_misfit(observer, frames, mean: np.ndarray, nbr: np.ndarray, stride: int
+                 ) -> tuple[np.ndarray, dict]:
+    """The local noise scale of the data around each band voxel: its reduced chi^2.
+
+    Every frame is observed again (same samples and weights as the data term) against the
+    posterior mean; per voxel, the capped chi^2 of the samples reaching it and the pixels they
+    stand for (:meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its
+    26 neighbours (a 3-voxel window: a few pixels per voxel are too few to estimate a variance),
+    and ``f = chi^2 / pixels``. Where the residuals match the noise model, ``f ~ 1``; where the
+    data disagree with each other and with any smooth surface (thin sheets seen from both sides,
+    occlusion edges, crevices the voxels cannot hold, misregistered frames), ``f >> 1``. A
+    voxel reached by less than one pixel's worth of samples in its window keeps ``f = 1``.
+
+    Returns ``(f, stats)``: (N,) float32 and ``median``, ``p90``, ``voxels_scaled`` (voxels
+    with an estimate)."""
+    for frame in frames:
+        observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, stride=stride)
+    chi2, pixels = observer.misfit_sums()
+    valid = nbr >= 0
+    idx = np.where(valid, nbr, 0)
+    chi2_w = np.where(valid, chi2[idx], 0.0).sum(axis=1)
+    pixels_w = np.where(valid, pixels[idx], 0.0).sum(axis=1)
+    ok = pixels_w >= 1.0
+    f = np.ones(len(mean), np.float64)
+    f[ok] = chi2_w[ok] / pixels_w[ok]
+    stats = {"voxels_scaled": int(ok.sum()),
+             "median": float(np.median(f[ok])) if ok.any() else None,
+             "p90": float(np.percentile(f[ok], 90)) if ok.any() else None}
+    return f.astype(np.float32), stats
 
 
 def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: float,
