@@ -138,10 +138,12 @@ class Reconstructor:
         mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
                                     voxel_size_m=vs, free=cfg.prior.free)
         lap("map")
-        var, var_stats = estimate_variance(system, cfg.solver, band.ijk, probes=variance)  # 6
+        var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
+                                                probes=variance)
         lap("variance")
         self.posterior = Posterior(
             band=band, voxel_size=vs, mean=mean, var=np.asarray(var, np.float32),
+            cov=cov if variance else None,
             observation=o, trunc_m=tau, bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,
             sigma_extra_m=float(noise["sigma_extra_m"]), solver=map_stats,
             variance=_plain(var_stats), observations=_plain(dict(counts, noise_fit=noise)),
@@ -154,7 +156,7 @@ class Reconstructor:
         return self.tsdf.extract_mesh(self.config.mesh.min_weight, voxels=self.voxels)
 
     def save(self, out_dir: str | os.PathLike) -> Path:
-        """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma``) and
+        """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma`` and ``sigma_pos``) and
         ``band.npz`` into ``out_dir`` (created; files written atomically); return the folder."""
         from .io import ensure_out_dir, write_mesh_ply
 
