@@ -369,4 +369,5 @@ def test_fuse_rgb_colours_both_meshes(tmp_path):
         v = plyfile.PlyData.read(out / name)["vertex"]
         rgb = np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], axis=1)
         assert len(rgb) > 100 and rgb.std(axis=0).min() > 5, name  # real colours, not a fill
-    assert "sigma" in plyfile.PlyData.read(out / "mesh.ply")["vertex"].data.dtype.names
+    names = plyfile.PlyData.read(out / "mesh.ply")["vertex"].data.dtype.names
+    assert "sigma" in names and "sigma_pos" in names
