@@ -107,7 +107,8 @@ class Posterior:
         """The posterior saved as ``band.npz`` by a run (``mean`` and ``var`` must be there:
         a ``run.stages = "tsdf_only"`` run has no posterior). A band.npz of an older version
         without ``cov`` loads with ``cov = None``: :meth:`extract_mesh` then gives every vertex
-        the interpolated marginal bound as ``sigma`` (12-25 % above the std of the SDF).
+        the interpolated marginal bound as ``sigma`` (above the std of the SDF: by 27-35 %
+        median on the spheres of tools/vertex_sigma_accuracy.py).
         Raises DataError naming the file."""
         try:
             with np.load(path) as z:
@@ -162,8 +163,9 @@ class Posterior:
         ``var`` at both and ``cov`` between them (:func:`~bftaichi.stages.surface.
         vertex_variance`). Where that is not at hand (``cov`` None: a band.npz of an older
         version; Lewiner's cell-centre vertices; an edge end outside the band) it falls back to
-        the trilinear interpolation of ``var``, an upper bound (correlated neighbours: 12-25 %
-        above).
+        the trilinear interpolation of ``var``, an upper bound (it ignores the correlation of
+        the two voxels: 27-35 % above, median, on the spheres of
+        tools/vertex_sigma_accuracy.py).
 
         ``sigma_pos`` (metres): the std of the surface position along the normal,
         ``sigma / |grad mean|``, the gradient that of the trilinear interpolant of ``mean`` in

@@ -7,8 +7,8 @@
     recon = bf.Reconstructor(bf.Config.from_toml("scenes/bunny.toml"))
     for frame in bf.open_dataset("path/to/frames"):
         recon.integrate(frame.depth_m, frame.K, frame.T_W_C)      # step 1
-    post = recon.solve()               # steps 2-6: bftaichi.Posterior (mean, var, band, stats)
-    mesh = post.extract_mesh()         # step 7: trimesh.Trimesh, vertex attribute "sigma" (m)
+    post = recon.solve()               # steps 2-6: bftaichi.Posterior (mean, var, cov, band)
+    mesh = post.extract_mesh()         # step 7: trimesh, vertex "sigma", "sigma_pos" (m)
     ranked = bf.nbv.rank(post, bf.nbv.candidates_around(post, n=48), recon.K, recon.image_size)
     recon.save("out/")                 # mesh.ply, tsdf_mesh.ply, band.npz (DESIGN.md section 4)
 
@@ -111,7 +111,8 @@ class Reconstructor:
         """Steps 2-6 on everything integrated so far: the band, the observations of ``frames``
         (default: the kept frames; a dataset with ``len`` and indexing), the GMRF prior, the PCG
         MAP (warm-started from the last solve) and, unless ``variance=False``, the probe
-        variance (else ``var`` is ``1/Q_ii``, a lower bound). ``frame_iter(frames, desc)``
+        variance and face-neighbour covariance (else ``var`` is ``1/Q_ii``, a lower bound, and
+        ``cov`` None). ``frame_iter(frames, desc)``
         yields the frames of the observation pass (the pipeline's prefetching reader). Raises
         NoSurfaceError when no voxel was observed."""
         cfg, frames = self.config, self.frames if frames is None else frames

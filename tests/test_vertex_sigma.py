@@ -13,7 +13,7 @@ from bftaichi.posterior import MIN_GRADIENT, Posterior
 from bftaichi.stages.surface import (_CORNERS, extract_mesh, sample_field, sample_gradient,
                                      vertex_variance)
 from bftaichi.stages.variance import estimate_variance
-from conftest import posterior_system, solved
+from conftest import posterior_system, solved, to_csr
 from kernels.probes import FACE_PLUS
 
 SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 8 views all around, 3 cm voxels
@@ -22,18 +22,6 @@ SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 8 views all around, 3 cm 
     "synthetic.height=60", "synthetic.fx=80", "synthetic.fy=80", "synthetic.cx=39.5",
     "synthetic.cy=29.5", "tsdf.voxel_size_m=0.03", "tsdf.trunc_m=0.06",
 )
-
-
-def to_dense(S, nbr, far):
-    n = len(S)
-    Q = np.zeros((n, n))
-    i, o = np.nonzero(nbr >= 0)
-    np.add.at(Q, (i, nbr[i, o]), S[i, o].astype(np.float64))
-    if far is not None:
-        S2, nbr2 = far
-        i, a = np.nonzero(nbr2 >= 0)
-        np.add.at(Q, (i, nbr2[i, a]), S2[i, a].astype(np.float64))
-    return Q
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +33,7 @@ def sphere():
     recon, post = solved(cfg, open_frames(cfg))
     band, system = posterior_system(recon)
     assert 2000 < len(band.ijk) < 5000
-    C = np.linalg.inv(to_dense(system.S, system.nbr, system.far))
+    C = np.linalg.inv(to_csr(system.S, system.nbr, system.far).toarray())
     verts, faces, edges = extract_mesh(band.ijk, post.mean, band.weight > 0, post.voxel_size,
                                        return_edges=True)
     assert len(verts) > 300

@@ -24,9 +24,13 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))  # conftest: the stage calls and Q of the tests
+from test_vertex_sigma import SPHERE_SETS  # noqa: E402
 
-#: Small scenes (--set overrides of the default config): N of 5k-40k band voxels.
+#: Small scenes (--set overrides of the default config): N of 3k-40k band voxels
+#: (``sphere-tiny`` is tests/test_vertex_sigma.py's sphere, for the smoke test).
 SCENES = {
+    "sphere-tiny": list(SPHERE_SETS),
     "sphere-3cm": ["synthetic.mesh=sphere", "synthetic.radius_m=0.3",
                    "synthetic.trajectory=sphere", "synthetic.n_views=16",
                    "synthetic.cam_radius_m=1.0", "synthetic.width=96", "synthetic.height=72",
@@ -44,17 +48,11 @@ SCENES = {
 
 def exact_columns(S, nbr, far, cols):
     """Columns ``cols`` of Q^-1 (N, len(cols)) float64 by one sparse LU of Q."""
-    import scipy.sparse as sp
     import scipy.sparse.linalg as spla
+    from conftest import to_csr
 
     n = len(S)
-    i, o = np.nonzero(nbr >= 0)
-    Q = sp.csr_matrix((S[i, o].astype(np.float64), (i, nbr[i, o])), shape=(n, n))
-    if far is not None:
-        S2, nbr2 = far
-        i, a = np.nonzero(nbr2 >= 0)
-        Q = Q + sp.csr_matrix((S2[i, a].astype(np.float64), (i, nbr2[i, a])), shape=(n, n))
-    lu = spla.splu(Q.tocsc())
+    lu = spla.splu(to_csr(S, nbr, far).tocsc())
     out = np.empty((n, len(cols)))
     for s in range(0, len(cols), 512):
         E = np.zeros((n, len(cols[s:s + 512])))
@@ -65,7 +63,6 @@ def exact_columns(S, nbr, far, cols):
 
 def measure(name, sets, probes, n_vertices, seed=0):
     """Rows ``(scene, N, V, estimator, med var, p90 var, med sigma, p90 sigma, seconds)``."""
-    sys.path.insert(0, str(ROOT / "tests"))
     from conftest import posterior_system, solved
 
     import bftaichi as bf
@@ -126,7 +123,7 @@ def measure(name, sets, probes, n_vertices, seed=0):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES)[1:], choices=list(SCENES))
     ap.add_argument("--probes", nargs="+", type=int, default=[16, 27, 32])
     ap.add_argument("--vertices", type=int, default=2000, help="vertices sampled per scene")
     args = ap.parse_args(argv)

@@ -481,7 +481,7 @@ def vertex_variance(ijk: np.ndarray, var: np.ndarray, cov: np.ndarray,
 
     A vertex on the edge from voxel i along axis e has the two trilinear weights 1 - t on i
     and t on i + e, so ``a^T C a = (1-t)^2 C_ii + 2 t (1-t) C_i,i+e + t^2 C_i+e,i+e``; a
-    vertex on a voxel centre has ``C_ii``. (N,) float64; NaN for cell-centre vertices and
+    vertex on a voxel centre has ``C_ii``. (V,) float64; NaN for cell-centre vertices and
     where a voxel is not in ``ijk`` (callers fall back to another estimate there)."""
     from kernels.layout import block_key_np
 
