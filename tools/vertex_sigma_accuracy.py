@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # conftest: the stage calls and Q of the tests
 from test_vertex_sigma import SPHERE_SETS  # noqa: E402
 
-#: Small scenes (--set overrides of the default config): N of 3k-40k band voxels
+#: Small scenes (--set overrides of the default config): N of 3k-30k band voxels
 #: (``sphere-tiny`` is tests/test_vertex_sigma.py's sphere, for the smoke test).
 SCENES = {
     "sphere-tiny": list(SPHERE_SETS),
@@ -40,10 +40,6 @@ SCENES = {
     "tabletop-2cm": ["synthetic.width=160", "synthetic.height=120", "synthetic.fx=262.5",
                      "synthetic.fy=262.5", "synthetic.cx=79.5", "synthetic.cy=59.5",
                      "synthetic.n_views=8", "tsdf.voxel_size_m=0.02", "tsdf.trunc_m=0.04"],
-    "bunny-1cm": ["synthetic.mesh=bunny", "synthetic.width=160", "synthetic.height=120",
-                  "synthetic.fx=262.5", "synthetic.fy=262.5", "synthetic.cx=79.5",
-                  "synthetic.cy=59.5", "synthetic.n_views=8", "tsdf.voxel_size_m=0.01",
-                  "tsdf.trunc_m=0.02"],
 }
 
 
