@@ -14,12 +14,27 @@ from .errors import DataError
 from .stages.band import Band
 from .stages.observe import ObservationConfig
 
-__all__ = ["Posterior"]
+__all__ = ["Posterior", "VERTEX_ATTRS", "mesh_attrs"]
 
 #: band.npz arrays of the DESIGN.md section 4 contract, and those that let planning and
 #: evaluation reload the posterior's observation model (not written by older versions).
 BAND_ARRAYS = ("ijk", "voxel_size", "mean", "var", "tsdf", "weight")
 MODEL_ARRAYS = ("observation", "trunc_m", "bootstrap_trunc_m", "sigma_extra_m")
+#: |grad mean| is floored here for ``sigma_pos = sigma / |grad mean|`` (dimensionless; an SDF
+#: has slope 1). Where the mean is nearly flat (thin structures, where the two sides' bands
+#: meet, or far from the data) the position is not determined by the SDF's std alone, and an
+#: unbounded ratio would swamp the colour scale; 0.1 caps sigma_pos at 10 sigma.
+MIN_GRADIENT = 0.1
+
+#: The float vertex properties of ``mesh.ply`` after ``x y z`` (DESIGN.md section 4), metres:
+#: the std of the SDF at the vertex and of the surface position along the normal.
+VERTEX_ATTRS = ("sigma", "sigma_pos")
+
+
+def mesh_attrs(mesh: trimesh.Trimesh) -> dict:
+    """The :data:`VERTEX_ATTRS` of a mesh from :meth:`Posterior.extract_mesh`, for
+    :func:`~bftaichi.io.write_mesh_ply`."""
+    return {name: mesh.vertex_attributes[name] for name in VERTEX_ATTRS}
 
 
 @dataclass(eq=False)
@@ -32,6 +47,11 @@ class Posterior:
         voxel_size: metres.
         mean: (N,) float32 MAP signed distance, metres (positive in free space).
         var: (N,) float32 estimated marginal variance ``diag(Q^-1)``, metres^2.
+        cov: (N, 3) float32 estimated covariance of each voxel with its +x, +y, +z neighbour,
+            ``(Q^-1)_{i, i+e}``, metres^2 (0 where the neighbour is not in the band), from the
+            same probes as ``var`` (:func:`~bftaichi.stages.variance.estimate_variance`); None
+            for a band.npz of an older version, whose vertex sigma is then the bound
+            interpolated from ``var`` (:meth:`extract_mesh`).
         observation: the observation model of the solve (None for a band.npz of an older
             version): what the planner must reproduce to predict a new view's information.
         trunc_m: the observation truncation tau, metres; ``bootstrap_trunc_m``: alpha tau.
@@ -47,6 +67,7 @@ class Posterior:
     voxel_size: float
     mean: np.ndarray
     var: np.ndarray
+    cov: np.ndarray | None = None
     observation: ObservationConfig | None = None
     trunc_m: float = 0.0
     bootstrap_trunc_m: float = 0.0
@@ -67,10 +88,13 @@ class Posterior:
 
     def band_arrays(self) -> dict:
         """The arrays of ``band.npz``: the DESIGN.md section 4 contract (``ijk, voxel_size,
-        mean, var, tsdf, weight``) and the observation model (``observation``: its settings as
-        a JSON string, ``trunc_m``, ``bootstrap_trunc_m``, ``sigma_extra_m``; float64, metres)."""
+        mean, var, tsdf, weight``), ``cov`` ((N, 3) float32 m^2, see the class docstring; left
+        out when None) and the observation model (``observation``: its settings as a JSON
+        string, ``trunc_m``, ``bootstrap_trunc_m``, ``sigma_extra_m``; float64, metres)."""
         arrays = {"ijk": self.ijk, "voxel_size": np.float32(self.voxel_size), "mean": self.mean,
                   "var": self.var, "tsdf": self.tsdf, "weight": self.weight}
+        if self.cov is not None:
+            arrays["cov"] = self.cov
         if self.observation is not None:
             arrays.update(observation=np.array(json.dumps(asdict(self.observation))),
                           trunc_m=np.float64(self.trunc_m),
@@ -81,7 +105,11 @@ class Posterior:
     @classmethod
     def load(cls, path) -> "Posterior":
         """The posterior saved as ``band.npz`` by a run (``mean`` and ``var`` must be there:
-        a ``run.stages = "tsdf_only"`` run has no posterior). Raises DataError naming the file."""
+        a ``run.stages = "tsdf_only"`` run has no posterior). A band.npz of an older version
+        without ``cov`` loads with ``cov = None``: :meth:`extract_mesh` then gives every vertex
+        the interpolated marginal bound as ``sigma`` (above the std of the SDF: by 27-35 %
+        median on the spheres of tools/vertex_sigma_accuracy.py).
+        Raises DataError naming the file."""
         try:
             with np.load(path) as z:
                 data = {k: z[k] for k in z.files}
@@ -95,6 +123,8 @@ class Posterior:
         if data["ijk"].shape != (n, 3) or any(data[k].shape != (n,) for k in
                                               ("mean", "var", "tsdf", "weight")):
             raise DataError(f"{path}: arrays ijk (N, 3) and mean/var/tsdf/weight (N,) disagree")
+        if "cov" in data and data["cov"].shape != (n, 3):
+            raise DataError(f"{path}: array cov has shape {data['cov'].shape}, not ({n}, 3)")
         model = {}
         if all(k in data for k in MODEL_ARRAYS):
             try:
@@ -108,10 +138,10 @@ class Posterior:
         band = Band.from_voxels(data["ijk"], data["tsdf"], data["weight"])
         return cls(band=band, voxel_size=float(data["voxel_size"]),
                    mean=data["mean"].astype(np.float32), var=data["var"].astype(np.float32),
-                   **model)
+                   cov=data["cov"].astype(np.float32) if "cov" in data else None, **model)
 
     def save(self, out_dir) -> Path:
-        """Write ``mesh.ply`` (:meth:`extract_mesh`, vertex ``sigma``) and ``band.npz``
+        """Write ``mesh.ply`` (:meth:`extract_mesh`, vertex ``sigma sigma_pos``) and ``band.npz``
         (:meth:`band_arrays`) into ``out_dir`` (DESIGN.md section 4), atomically; return the
         folder. :meth:`load` reads the band back."""
         from .io import ensure_out_dir, write_mesh_ply, write_npz
@@ -119,30 +149,55 @@ class Posterior:
         out = ensure_out_dir(out_dir)
         mesh = self.extract_mesh()
         write_mesh_ply(out / "mesh.ply", mesh.vertices, mesh.faces,
-                       vertex_attrs={"sigma": mesh.vertex_attributes["sigma"]})
+                       vertex_attrs=mesh_attrs(mesh))
         write_npz(out / "band.npz", **self.band_arrays())
         return out
 
     def extract_mesh(self) -> trimesh.Trimesh:
         """Step 7: marching cubes at ``mean = 0`` over cells whose 8 corners are band voxels
-        observed by the bootstrap (weight > 0), with vertex attribute ``sigma`` (metres,
-        trilinear from the voxel variances).
+        observed by the bootstrap (weight > 0), with vertex attributes (:data:`VERTEX_ATTRS`):
+
+        ``sigma`` (metres): the posterior std of the SDF interpolated at the vertex,
+        ``sqrt(a_v^T Q^-1 a_v)`` (DESIGN.md 3.7). A vertex lies on the grid edge between
+        voxels i and i + e (:class:`~bftaichi.stages.surface.VertexEdges`), so this needs
+        ``var`` at both and ``cov`` between them (:func:`~bftaichi.stages.surface.
+        vertex_variance`). Where that is not at hand (``cov`` None: a band.npz of an older
+        version; Lewiner's cell-centre vertices; an edge end outside the band) it falls back to
+        the trilinear interpolation of ``var``, an upper bound (it ignores the correlation of
+        the two voxels: 27-35 % above, median, on the spheres of
+        tools/vertex_sigma_accuracy.py).
+
+        ``sigma_pos`` (metres): the std of the surface position along the normal,
+        ``sigma / |grad mean|``, the gradient that of the trilinear interpolant of ``mean`` in
+        the vertex's cell (:func:`~bftaichi.stages.surface.sample_gradient`), floored at
+        :data:`MIN_GRADIENT` (taken as 1, an SDF's slope, where a cell corner is missing).
 
         Why observed corners only: in the one-voxel dilation around the band, nothing but the
         prior sets the mean, and the membrane prior flattens it toward the anchors and 0, which
         makes zero crossings where no surface was seen (measured on the default scene: 12 % of
         vertices more than 1 cm from the truth, 92 % of those in cells with an unobserved
         corner)."""
-        from .stages.surface import extract_mesh, sample_field
+        from .stages.surface import extract_mesh, sample_field, sample_gradient, vertex_variance
 
-        vertices, faces = extract_mesh(self.ijk, self.mean, self.weight > 0, self.voxel_size)
+        vertices, faces, edges = extract_mesh(self.ijk, self.mean, self.weight > 0,
+                                              self.voxel_size, return_edges=True)
         mesh = trimesh.Trimesh(vertices, faces, process=False)
-        sigma = np.zeros(0, np.float32)
+        sigma = sigma_pos = np.zeros(0, np.float32)
         if len(vertices):
-            var = sample_field(self.ijk, self.var, np.ones(len(self.ijk), bool), self.voxel_size,
-                               vertices)
-            sigma = np.sqrt(np.maximum(np.nan_to_num(var), 0)).astype(np.float32)
+            everywhere = np.ones(len(self.ijk), bool)
+            var = np.full(len(vertices), np.nan)
+            if self.cov is not None:
+                var = vertex_variance(self.ijk, self.var, self.cov, edges)
+            bound = ~np.isfinite(var)
+            var[bound] = sample_field(self.ijk, self.var, everywhere, self.voxel_size,
+                                      vertices[bound])
+            sigma = np.sqrt(np.maximum(np.nan_to_num(var), 0))
+            grad = np.linalg.norm(sample_gradient(self.ijk, self.mean, everywhere,
+                                                  self.voxel_size, vertices), axis=1)
+            grad = np.maximum(np.nan_to_num(grad, nan=1.0), MIN_GRADIENT)
+            sigma, sigma_pos = sigma.astype(np.float32), (sigma / grad).astype(np.float32)
         mesh.vertex_attributes["sigma"] = sigma
+        mesh.vertex_attributes["sigma_pos"] = sigma_pos
         return mesh
 
     def warm_start(self, ijk: np.ndarray, x0: np.ndarray) -> np.ndarray:

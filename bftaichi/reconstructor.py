@@ -7,8 +7,8 @@
     recon = bf.Reconstructor(bf.Config.from_toml("scenes/bunny.toml"))
     for frame in bf.open_dataset("path/to/frames"):
         recon.integrate(frame.depth_m, frame.K, frame.T_W_C)      # step 1
-    post = recon.solve()               # steps 2-6: bftaichi.Posterior (mean, var, band, stats)
-    mesh = post.extract_mesh()         # step 7: trimesh.Trimesh, vertex attribute "sigma" (m)
+    post = recon.solve()               # steps 2-6: bftaichi.Posterior (mean, var, cov, band)
+    mesh = post.extract_mesh()         # step 7: trimesh, vertex "sigma", "sigma_pos" (m)
     ranked = bf.nbv.rank(post, bf.nbv.candidates_around(post, n=48), recon.K, recon.image_size)
     recon.save("out/")                 # mesh.ply, tsdf_mesh.ply, band.npz (DESIGN.md section 4)
 
@@ -111,7 +111,8 @@ class Reconstructor:
         """Steps 2-6 on everything integrated so far: the band, the observations of ``frames``
         (default: the kept frames; a dataset with ``len`` and indexing), the GMRF prior, the PCG
         MAP (warm-started from the last solve) and, unless ``variance=False``, the probe
-        variance (else ``var`` is ``1/Q_ii``, a lower bound). ``frame_iter(frames, desc)``
+        variance and face-neighbour covariance (else ``var`` is ``1/Q_ii``, a lower bound, and
+        ``cov`` None). ``frame_iter(frames, desc)``
         yields the frames of the observation pass (the pipeline's prefetching reader). Raises
         NoSurfaceError when no voxel was observed."""
         cfg, frames = self.config, self.frames if frames is None else frames
@@ -138,7 +139,8 @@ class Reconstructor:
         mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
                                     voxel_size_m=vs, free=cfg.prior.free)
         lap("map")
-        var, var_stats = estimate_variance(system, cfg.solver, band.ijk, probes=variance)  # 6
+        var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
+                                                probes=variance)
         lap("variance")
         if o.local_noise:
             scale, misfit = local_misfit(observer, frame_iter(frames, "misfit") if frame_iter
@@ -148,6 +150,7 @@ class Reconstructor:
             lap("misfit")
         self.posterior = Posterior(
             band=band, voxel_size=vs, mean=mean, var=np.asarray(var, np.float32),
+            cov=cov if variance else None,
             observation=o, trunc_m=tau, bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,
             sigma_extra_m=float(noise["sigma_extra_m"]), solver=map_stats,
             variance=_plain(var_stats), observations=_plain(dict(counts, noise_fit=noise)),
@@ -160,7 +163,7 @@ class Reconstructor:
         return self.tsdf.extract_mesh(self.config.mesh.min_weight, voxels=self.voxels)
 
     def save(self, out_dir: str | os.PathLike) -> Path:
-        """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma``) and
+        """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma`` and ``sigma_pos``) and
         ``band.npz`` into ``out_dir`` (created; files written atomically); return the folder."""
         from .io import ensure_out_dir, write_mesh_ply
 

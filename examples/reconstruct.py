@@ -39,7 +39,7 @@ def main(argv=None) -> dict:
     for frame in frames:
         recon.integrate(frame.depth_m, frame.K, frame.T_W_C, name=frame.name)
     post = recon.solve()  # Posterior: mean / var (N,) over the band ijk (N, 3)
-    mesh = post.extract_mesh()  # trimesh.Trimesh, world metres, vertex attribute "sigma"
+    mesh = post.extract_mesh()  # trimesh.Trimesh, world metres, vertex "sigma", "sigma_pos" (m)
     sigma = mesh.vertex_attributes["sigma"]
     ranked = bf.nbv.rank(post, bf.nbv.candidates_around(post, n=24), recon.K, recon.image_size,
                          config, frames=recon.frames)

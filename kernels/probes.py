@@ -1,4 +1,5 @@
-"""Probe estimate of the posterior variance ``s ~= diag(Q^-1)`` (DESIGN.md 3, step 6): probe
+"""Probe estimate of the posterior variance ``s ~= diag(Q^-1)`` (DESIGN.md 3, step 6) and of the
+covariances of face neighbours (step 7's vertex sigma): probe
 vectors (Rademacher or lattice colouring) solved as one batched PCG
 (:func:`kernels.pcg.pcg_batched`).
 
@@ -89,15 +90,31 @@ def probe_vectors(n: int, n_probes: int, seed: int = 0, *, method: str,
     return Z
 
 
+#: Stencil offsets of the face neighbours +x, +y, +z (:data:`kernels.layout.OFFSETS`), the
+#: columns of the neighbour covariance :func:`probe_variance` returns.
+FACE_PLUS = (22, 16, 14)
+
+
 def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
                    tol: float = 1e-4, maxiter: int = 1000, ijk=None, far=None) -> tuple:
-    """Stochastic estimate of the posterior variance ``s ~= diag(Q^-1)`` (DESIGN.md 3.6).
+    """``(s, info)`` of :func:`probe_moments` (the same arguments), without the covariances."""
+    s, _, info = probe_moments(S, nbr, n_probes, seed, method=method, tol=tol, maxiter=maxiter,
+                               ijk=ijk, far=far)
+    return s, info
+
+
+def probe_moments(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
+                  tol: float = 1e-4, maxiter: int = 1000, ijk=None, far=None) -> tuple:
+    """Stochastic estimate of the posterior variance ``s ~= diag(Q^-1)`` (DESIGN.md 3.6) and
+    of each voxel's covariance with its +x, +y, +z neighbours (DESIGN.md 3.7: the variance
+    of the SDF interpolated on a grid edge needs them).
 
     ``s = sum_k z_k * u_k / sum_k z_k * z_k`` (elementwise) with ``Q u_k = z_k``, the K
     probes z_k from :func:`probe_vectors` (``method`` = ``rademacher`` | ``coloring``, no
     default: the caller chooses; the colouring needs ``ijk``), solved as one batched multi-RHS
     PCG (:func:`pcg_batched`, float32 vectors, blocks of up to
-    :data:`kernels.stencil.MAX_LANES` probes).
+    :data:`kernels.stencil.MAX_LANES` probes). The same solutions give the covariances
+    (:func:`probe_covariance`).
 
     Args:
         S, nbr: the stencil (:mod:`kernels.stencil`), validated by :func:`check_stencil`.
@@ -111,11 +128,13 @@ def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
         ijk: (N, 3) band voxels (``coloring`` only).
         far: optional (S2, nbr2) part of Q at offsets +-2 (:func:`check_far`).
     Returns:
-        ``(s, info)``: s (N,) float32 (m^2 when Q is in 1/m^2); info = dict(method,
-        n_probes, lattice ((1, a, b) of the colouring, else None), converged (all probes),
-        n_not_converged, iterations (per probe), relative_residuals (per probe),
-        n_nonpositive (voxels with s <= 0, possible with few Rademacher probes)).
-        Deterministic: the same seed gives bitwise identical s.
+        ``(s, cov, info)``: s (N,) float32 (m^2 when Q is in 1/m^2); cov (N, 3) float32, the
+        covariance of voxel i with its neighbour at +x, +y, +z (:data:`FACE_PLUS`), 0 where
+        that neighbour is not in the band; info = dict(method, n_probes, lattice ((1, a, b)
+        of the colouring, else None), converged (all probes), n_not_converged, iterations
+        (per probe), relative_residuals (per probe), n_nonpositive (voxels with s <= 0,
+        possible with few Rademacher probes)).
+        Deterministic: the same seed gives bitwise identical s and cov.
     """
     S, nbr = check_stencil(S, nbr)
     far = check_far(far, S)
@@ -125,6 +144,7 @@ def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
     num = np.einsum("ij,ij->i", Z, U, dtype=np.float64)
     den = np.einsum("ij,ij->i", Z, Z, dtype=np.float64)
     s = (num / den).astype(np.float32)
+    cov = probe_covariance(Z, U, nbr, den)
     lattice = None
     if method == "coloring":
         lattice = [1, *coloring_lattice(n_probes)[:2]]
@@ -132,4 +152,27 @@ def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
                 converged=solve["converged"], n_not_converged=solve["n_not_converged"],
                 iterations=solve["iterations"], relative_residuals=solve["relative_residuals"],
                 n_nonpositive=int(np.count_nonzero(~(s > 0))))
-    return s, info
+    return s, cov, info
+
+
+def probe_covariance(Z: np.ndarray, U: np.ndarray, nbr: np.ndarray, den: np.ndarray
+                     ) -> np.ndarray:
+    """(N, 3) float32 ``Cov(i, j) ~= (Q^-1)_ij`` for j the +x, +y, +z neighbour of i, from the
+    probes Z (N, K) and their solutions ``U = Q^-1 Z``; ``den`` (N,) = ``sum_k Z_ik^2``.
+
+    ``sum_k Z_ik U_jk = (Q^-1)_ji sum_k Z_ik^2 + sum_k sum_{l != i} (Q^-1)_jl Z_ik Z_lk``:
+    the estimate from i's probes, ``sum_k Z_ik U_jk / sum_k Z_ik^2``, errs by the covariances
+    of j with the voxels that share i's probes (with colouring: i's colour, the nearest of them
+    ``sqrt(d2) - 1`` voxels from j, so closer than they are to i for the diagonal). The
+    estimate from j's probes errs over j's colour instead; the two errors are independent
+    (different signs), so their mean halves the error variance. 0 where j is not in the band.
+    """
+    n = len(Z)
+    cov = np.zeros((n, 3), np.float32)
+    for e, o in enumerate(FACE_PLUS):  # three axes, each vectorised over the band
+        i = np.flatnonzero(nbr[:, o] >= 0)
+        j = nbr[i, o].astype(np.int64)
+        from_i = np.einsum("ij,ij->i", Z[i], U[j], dtype=np.float64) / den[i]
+        from_j = np.einsum("ij,ij->i", Z[j], U[i], dtype=np.float64) / den[j]
+        cov[i, e] = 0.5 * (from_i + from_j)
+    return cov

@@ -50,3 +50,19 @@ def posterior_system(recon):
     observer = make_observer(band, cfg.observation, vs, tau, post.sigma_extra_m)
     S, h, _ = observe(observer, recon.frames, cfg.observation.stride)
     return band, add_prior(S, h, band, cfg.prior, cfg.band.stencil, vs)
+
+
+def to_csr(S, nbr, far=None):
+    """Q (N, N) scipy CSR float64 of a stencil ``S, nbr`` and its optional ``far`` part
+    (:mod:`kernels.stencil`'s layout), for exact references on small problems."""
+    import numpy as np
+    import scipy.sparse as sp
+
+    n = len(S)
+    i, o = np.nonzero(nbr >= 0)
+    Q = sp.csr_matrix((S[i, o].astype(np.float64), (i, nbr[i, o])), shape=(n, n))
+    if far is not None:
+        S2, nbr2 = far
+        i, a = np.nonzero(nbr2 >= 0)
+        Q = Q + sp.csr_matrix((S2[i, a].astype(np.float64), (i, nbr2[i, a])), shape=(n, n))
+    return Q

@@ -37,6 +37,7 @@ def test_the_api_gives_what_the_pipeline_gives(tiny, tmp_path):
     mesh = post.extract_mesh()
     assert len(mesh.faces) == report["counts"]["mesh_faces"]
     assert (mesh.vertex_attributes["sigma"] > 0).all()
+    assert (mesh.vertex_attributes["sigma_pos"] > 0).all()
     # save / load round trip of the DESIGN.md files
     out = recon.save(tmp_path / "api")
     assert {p.name for p in out.iterdir()} == {"mesh.ply", "tsdf_mesh.ply", "band.npz"}

@@ -87,12 +87,12 @@ def test_run_writes_every_output(tiny_run):
 def test_run_band_npz_has_the_documented_arrays(tiny_run):
     report = json.loads((tiny_run / "report.json").read_text())
     with np.load(tiny_run / "band.npz") as band:
-        assert set(band.files) == {"ijk", "voxel_size", "mean", "var", "tsdf", "weight",
+        assert set(band.files) == {"ijk", "voxel_size", "mean", "var", "cov", "tsdf", "weight",
                                    "observation", "trunc_m", "bootstrap_trunc_m", "sigma_extra_m"}
         ijk, tsdf, weight = band["ijk"], band["tsdf"], band["weight"]
         observation = json.loads(str(band["observation"]))
         trunc_m, sigma_extra_m = float(band["trunc_m"]), float(band["sigma_extra_m"])
-        mean, var = band["mean"], band["var"]
+        mean, var, cov = band["mean"], band["var"], band["cov"]
         voxel_size = band["voxel_size"]
     n = report["counts"]["band_voxels"]
     assert n > 1000
@@ -103,6 +103,8 @@ def test_run_band_npz_has_the_documented_arrays(tiny_run):
     assert len(np.unique(ijk, axis=0)) == n                     # each voxel once
     assert np.all(weight >= 0) and np.all(weight <= 6)          # 0 = dilation, at most 6 frames
     assert np.all(var > 0)
+    assert cov.dtype == np.float32 and cov.shape == (n, 3)
+    assert np.all(cov ** 2 <= var[:, None] * var.max() * (1 + 1e-6))  # |cov_ij| <= sqrt(var_i var_j)
     # the solve's observation model, for planning and evaluation (tiny run: tau = 6 cm)
     assert observation["stride"] == 2 and observation["count_once"] == "voxel"
     assert trunc_m == pytest.approx(0.06) and sigma_extra_m == report["solver"]["observations"][
@@ -369,4 +371,5 @@ def test_fuse_rgb_colours_both_meshes(tmp_path):
         v = plyfile.PlyData.read(out / name)["vertex"]
         rgb = np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], axis=1)
         assert len(rgb) > 100 and rgb.std(axis=0).min() > 5, name  # real colours, not a fill
-    assert "sigma" in plyfile.PlyData.read(out / "mesh.ply")["vertex"].data.dtype.names
+    names = plyfile.PlyData.read(out / "mesh.ply")["vertex"].data.dtype.names
+    assert "sigma" in names and "sigma_pos" in names

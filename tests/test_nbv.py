@@ -9,7 +9,6 @@ import json
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 from scipy.stats import spearmanr
 
 from bftaichi import nbv
@@ -18,7 +17,7 @@ from bftaichi.config import load_config
 from bftaichi.errors import BftaichiError
 from bftaichi.posterior import Posterior
 from bftaichi.stages.band import Band
-from conftest import TINY_SCENE_SETS, posterior_system, solved
+from conftest import TINY_SCENE_SETS, posterior_system, solved, to_csr
 
 SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 3 ring views on one side, 3 cm voxels
     "synthetic.mesh=sphere", "synthetic.radius_m=0.15", "synthetic.trajectory=ring",
@@ -42,17 +41,6 @@ def half_sphere():
     cfg = load_config(None, SPHERE_SETS)
     frames, recon, post = solve(cfg)
     return cfg, frames, recon, post
-
-
-def to_csr(S, nbr, far=None):
-    n = len(S)
-    i, o = np.nonzero(nbr >= 0)
-    Q = sp.csr_matrix((S[i, o].astype(np.float64), (i, nbr[i, o])), shape=(n, n))
-    if far is not None:
-        S2, nbr2 = far
-        i, a = np.nonzero(nbr2 >= 0)
-        Q = Q + sp.csr_matrix((S2[i, a].astype(np.float64), (i, nbr2[i, a])), shape=(n, n))
-    return Q
 
 
 # -- candidates --------------------------------------------------------------------------------

@@ -77,11 +77,12 @@ def test_full_run_writes_the_documented_outputs(tmp_path):
     band = np.load(tmp_path / "band.npz")
     n = len(band["ijk"])
     assert n == report["counts"]["band_voxels"] > 0
-    for key in ("mean", "var", "tsdf", "weight"):
+    for key in ("mean", "var", "tsdf", "weight"):  # and cov (N, 3), below
         assert band[key].shape == (n,) and band[key].dtype == np.float32, key
     assert np.all(band["var"] > 0)
     v, f, extra = read_mesh_ply(tmp_path / "mesh.ply")
-    assert set(extra) == {"sigma"} and len(extra["sigma"]) == len(v) and len(f) > 0
+    assert list(extra) == ["sigma", "sigma_pos"] and len(extra["sigma"]) == len(v) and len(f) > 0
+    assert band["cov"].shape == (n, 3) and band["cov"].dtype == np.float32
     saved = json.loads((tmp_path / "report.json").read_text())
     assert set(saved["metrics"]) == {"tsdf_mesh.ply", "mesh.ply"}
     assert saved["solver"]["map"]["converged"] is True

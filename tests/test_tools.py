@@ -82,3 +82,13 @@ def test_reproduce_paper_prints_the_three_rows(tmp_path):
     fig3 = [ln for ln in out.splitlines() if ln.startswith("| 4 |") or ln.startswith("| 8 |")]
     assert len(fig3) == 2 and all(float(ln.split("|")[2].split()[0]) > 0 for ln in fig3)
     assert (tmp_path / "fig3.png").stat().st_size > 1000
+
+
+def test_vertex_sigma_accuracy_prints_a_row_per_estimator():
+    out = _run([TOOLS / "vertex_sigma_accuracy.py", "--scenes", "sphere-tiny", "--probes", "16",
+                "--vertices", "200"])
+    rows = [ln.split(" | ") for ln in out.splitlines() if ln.startswith("| sphere-tiny")]
+    assert [r[3] for r in rows] == ["interpolated var (exact)", "probes K=16 (cov)",
+                                    "probes K=16 (var only, cov=0)"]
+    median = {r[3]: float(r[4].rstrip(" %")) for r in rows}
+    assert median["probes K=16 (cov)"] < median["probes K=16 (var only, cov=0)"]

@@ -19,7 +19,7 @@ from PIL import Image
 
 from bftaichi.running import viz
 from bftaichi.cli import main
-from bftaichi.running.viz import _colormap, _decimate, _page, _Recorder, preview_html
+from bftaichi.running.viz import LEGEND, _colormap, _decimate, _page, _Recorder, preview_html
 from conftest import TINY_SCENE_SETS
 
 CHROMIUM = Path(viz.CHROMIUM)
@@ -53,7 +53,7 @@ def tiny_run(tmp_path_factory):
 
 def test_run_writes_a_self_contained_preview(tiny_run):
     page = (tiny_run / "preview.html").read_text()
-    assert "MeshCat.Viewer" in page and "posterior sigma (mm)" in page
+    assert "MeshCat.Viewer" in page and LEGEND["sigma_pos"] in page
     assert "http://" not in page.split("<script>")[0]  # nothing fetched from a server
     assert page.count("handle_command_bytearray") >= 4  # mesh, TSDF mesh, cameras, NBV, ...
     m = re.search(r'<span>([0-9.e+-]+)</span><span>([0-9.e+-]+)</span>', page)

@@ -1,8 +1,9 @@
 """A run: frames -> TSDF bootstrap -> (probabilistic posterior) -> meshes -> metrics -> the
 DESIGN.md section 4 outputs.
 
-``run.stages = "full"`` (default) writes ``tsdf_mesh.ply``, ``mesh.ply`` (with per-vertex sigma),
-``band.npz`` (band voxels: ``ijk, voxel_size, mean, var, tsdf, weight``), ``report.json`` and
+``run.stages = "full"`` (default) writes ``tsdf_mesh.ply``, ``mesh.ply`` (with per-vertex
+``sigma`` and ``sigma_pos``), ``band.npz`` (band voxels: ``ijk, voxel_size, mean, var, cov,
+tsdf, weight``), ``report.json`` and
 ``config.toml``. ``"tsdf_only"`` stops after the bootstrap; its ``band.npz`` then holds every
 observed voxel's ``tsdf`` and ``weight``.
 """
@@ -23,6 +24,7 @@ from .. import backend
 from ..config import Config, parse_slice, save_config
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
 from ..io import prepare_out_dir, write_json, write_mesh_ply, write_npz
+from ..posterior import mesh_attrs
 from ..reconstructor import Reconstructor
 from ..version import __version__
 
@@ -319,7 +321,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                 post_colors = np.clip(np.nan_to_num(np.stack(cols, axis=1)), 0, 255).astype(
                     np.uint8)
             write_mesh_ply(out / "mesh.ply", post_mesh.vertices, post_mesh.faces,
-                           vertex_attrs={"sigma": post_mesh.vertex_attributes["sigma"]},
+                           vertex_attrs=mesh_attrs(post_mesh),
                            vertex_colors=post_colors)
             write_npz(out / "band.npz", **post.band_arrays())
         save_config(cfg, out / "config.toml")

@@ -2,17 +2,24 @@
 
 The scene (:func:`build_scene`, from the files of an output folder, DESIGN.md section 4):
 
-- ``bftaichi/mesh``: ``mesh.ply`` coloured by its vertex ``sigma`` (colour map ``viridis``
-  between the 2nd and 98th percentile, written into the page as a legend in millimetres);
+- ``bftaichi/mesh``: ``mesh.ply`` coloured by its vertex ``sigma_pos`` (colour map ``viridis``
+  between the 2nd and 98th percentile, written into the page as a legend in millimetres).
+  ``sigma_pos`` is the std of the surface position along the normal (``sigma / |grad mean|``,
+  DESIGN.md 3.7): the answer to what a user looks at a surface for, "how far off might this
+  surface be", in metres along the normal. ``sigma`` (the std of the SDF value at the vertex)
+  only equals it where the mean has unit slope; where the slope is flatter, the same SDF
+  uncertainty moves the surface further. A ``mesh.ply`` of an older version without
+  ``sigma_pos`` is coloured by ``sigma``, and the legend says which one is shown;
 - ``bftaichi/tsdf_mesh``: the TSDF baseline ``tsdf_mesh.ply`` in grey, hidden at first (tick it
   in the viewer's *Open Controls* > *Scene* tree to show it);
 - ``bftaichi/cameras``: a frustum per input frame (from ``report.json``'s ``frames`` poses);
 - ``bftaichi/nbv``: with ``nbv.json``, the candidate frustums coloured by utility (dark =
   low, yellow = high) and the best view in red, drawn larger;
-- ``bftaichi/band`` (``band=True``): band voxels near the surface as points coloured by sigma.
+- ``bftaichi/band`` (``band=True``): band voxels near the surface as points coloured by their
+  marginal sigma (SDF std, ``sqrt(var)``).
 
 Meshes above ``max_faces`` are decimated (quadric decimation, ``fast-simplification``) before
-they are sent, and the sigma of a decimated vertex is that of the nearest original vertex.
+they are sent, and the colour value of a decimated vertex is that of the nearest original vertex.
 
 meshcat-python 0.3.2 notes, all handled here: its ``Visualizer()`` starts a server subprocess
 (ports 6000/7000 and up) and ``static_html()`` asks that server for the page. The static page
@@ -132,22 +139,23 @@ def _load_outputs(out: Path) -> dict:
 
 def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False) -> dict:
     """Send the scene of a run's outputs in ``out_dir`` to the meshcat visualizer ``vis``;
-    return the legend (``sigma_mm``: colour range, or None) and what was drawn."""
+    return the legend (``sigma_mm``: colour range, or None; ``sigma_name``: the vertex
+    property shown, ``sigma_pos`` or, for an older mesh.ply, ``sigma``) and what was drawn."""
     import meshcat.geometry as g
 
     d = _load_outputs(Path(out_dir))
     root = vis["bftaichi"]
-    info = {"sigma_mm": None, "drawn": []}
+    info = {"sigma_mm": None, "sigma_name": None, "drawn": []}
     scale, centre = 1.0, None
     if d["mesh.ply"] is not None:
         v, f, attrs = d["mesh.ply"]
-        sigma = attrs.get("sigma")
-        v, f, sigma = _decimate(v, f, sigma, max_faces)
+        name = next((n for n in ("sigma_pos", "sigma") if n in attrs), None)
+        v, f, sigma = _decimate(v, f, attrs.get(name), max_faces)
         color = None
         if sigma is not None and len(sigma):
             lo, hi = (float(x) for x in np.percentile(sigma, [2, 98]))
             color = _colormap(sigma, lo, hi)
-            info["sigma_mm"] = (1000 * lo, 1000 * hi)
+            info["sigma_mm"], info["sigma_name"] = (1000 * lo, 1000 * hi), name
         root["mesh"].set_object(g.TriangularMeshGeometry(v, f, color=color),
                                 g.MeshLambertMaterial(color=0xffffff, vertexColors=color is not None))
         info["drawn"].append(f"mesh.ply ({len(f):,} faces)")
@@ -241,12 +249,17 @@ def preview_html(out_dir, *, max_faces: int = MAX_FACES, band: bool = False) -> 
 
     rec = _Recorder()
     info = build_scene(meshcat.Visualizer(window=rec), out_dir, max_faces=max_faces, band=band)
-    return _page(rec.commands, info["sigma_mm"], Path(out_dir).name)
+    return _page(rec.commands, info["sigma_mm"], Path(out_dir).name, info["sigma_name"])
 
 
-def _page(commands: list, sigma_mm, title: str) -> str:
-    """The static page of recorded meshcat ``commands`` with the sigma legend (mm range or
-    None)."""
+#: Legend titles of the vertex property the mesh is coloured by.
+LEGEND = {"sigma_pos": "posterior sigma of the surface position along the normal (mm)",
+          "sigma": "posterior sigma of the SDF at the vertex (mm)"}
+
+
+def _page(commands: list, sigma_mm, title: str, sigma_name: str = "sigma_pos") -> str:
+    """The static page of recorded meshcat ``commands`` with the legend of ``sigma_name``
+    (:data:`LEGEND`; mm range ``sigma_mm``, or None for no legend)."""
     import os
 
     from meshcat.servers.zmqserver import VIEWER_ROOT, create_command
@@ -254,7 +267,7 @@ def _page(commands: list, sigma_mm, title: str) -> str:
     legend = ""
     if sigma_mm is not None:
         lo, hi = sigma_mm
-        legend = (f'<div id="legend">posterior sigma (mm)<div class="bar"></div>'
+        legend = (f'<div id="legend">{LEGEND[sigma_name]}<div class="bar"></div>'
                   f'<div class="ends"><span>{lo:.3g}</span><span>{hi:.3g}</span></div>'
                   f'<div>layers (TSDF mesh: hidden, cameras, NBV views): Open Controls &gt; '
                   f'Scene</div></div>')

@@ -23,7 +23,8 @@ import numpy as np
 from ..checks import check_range
 from ..errors import BftaichiError
 
-__all__ = ["MeshConfig", "extract_mesh", "sample_field"]
+__all__ = ["MeshConfig", "VertexEdges", "extract_mesh", "sample_field", "sample_gradient",
+           "vertex_variance"]
 
 
 @dataclass
@@ -125,8 +126,8 @@ def _linear_key(idx: np.ndarray, lo: np.ndarray, dims: np.ndarray) -> np.ndarray
 # --------------------------------------------------------------------------------------------
 
 def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxel_size: float,
-                 level: float = 0.0, *, chunk_cells: int = DEFAULT_CHUNK_CELLS
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 level: float = 0.0, *, chunk_cells: int = DEFAULT_CHUNK_CELLS,
+                 return_edges: bool = False) -> tuple:
     """Iso-surface ``values == level`` of a sparse voxel field, by marching cubes.
 
     Args:
@@ -140,6 +141,9 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
         level: iso-value (same unit as ``values``).
         chunk_cells: cells per chunk edge (1..256). Memory per chunk is about
             ``20 * (chunk_cells + 1)^3`` bytes (43 MB at the default 128).
+        return_edges: also return each vertex's grid feature (:class:`VertexEdges`): the
+            identification the seam merge uses, for callers that need a vertex's trilinear
+            weights (step 7's vertex sigma).
 
     Returns:
         vertices (V, 3) float32 world metres, faces (F, 3) int32. Faces are wound so that their
@@ -148,6 +152,7 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
         from a voxel centre are snapped onto it, degenerate faces are dropped, and every
         returned vertex is used by a face.
         Empty arrays of shape (0, 3) when there is no observed crossing of ``level``.
+        With ``return_edges``, a third value, the :class:`VertexEdges` of the vertices.
 
     Raises:
         BftaichiError (a ValueError) naming the bad argument.
@@ -168,6 +173,8 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     chunk_cells = int(chunk_cells)
 
     empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    if return_edges:
+        empty += (VertexEdges.empty(),)
     ijk, values = ijk[observed], values[observed]
     if len(ijk) == 0:
         return empty
@@ -265,7 +272,49 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     used, faces = np.unique(faces, return_inverse=True)
     faces = faces.reshape(-1, 3)
     vertices = (pos[used] + lo + 0.5) * voxel_size
-    return vertices.astype(np.float32), faces.astype(np.int32)
+    out = vertices.astype(np.float32), faces.astype(np.int32)
+    if return_edges:
+        out += (VertexEdges.from_keys(keys[first][used], pos[used], lo, key_dims, grid_keys_end),)
+    return out
+
+
+@dataclass
+class VertexEdges:
+    """The grid feature each marching-cubes vertex lies on (:func:`extract_mesh`,
+    ``return_edges=True``), from the keys that merge vertices across chunk seams.
+
+    Attributes:
+        ijk: (V, 3) int64 voxel at the feature's lower end: the edge's first voxel, or the voxel
+            a vertex was snapped onto (undefined, 0, for cell-centre vertices).
+        axis: (V,) int8: 0, 1, 2 for a vertex on the edge from ``ijk`` to ``ijk + e_axis``;
+            3 for a vertex on the voxel centre ``ijk`` (snapped, weight 1); -1 for Lewiner's
+            cell-centre vertices of ambiguous cases (weights over the whole cell).
+        t: (V,) float64 fraction along the edge from ``ijk`` (0 unless ``axis`` is 0..2): the
+            vertex's trilinear weights are ``1 - t`` on ``ijk`` and ``t`` on ``ijk + e_axis``.
+    """
+
+    ijk: np.ndarray
+    axis: np.ndarray
+    t: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "VertexEdges":
+        return cls(np.zeros((0, 3), np.int64), np.zeros(0, np.int8), np.zeros(0))
+
+    @classmethod
+    def from_keys(cls, keys, pos, lo, key_dims, grid_keys_end) -> "VertexEdges":
+        """Decode :func:`_vertex_keys`' keys (``4 * point_key + axis``; centre vertices at
+        ``grid_keys_end`` and above) and box-relative positions ``pos`` (V, 3)."""
+        centre = keys >= grid_keys_end
+        point = np.where(centre, 0, keys // 4)
+        axis = np.where(centre, -1, keys % 4).astype(np.int8)
+        rel = np.stack(np.unravel_index(point, tuple(key_dims)), axis=1) - 1  # key origin -1
+        t = np.zeros(len(keys))
+        on_edge = np.flatnonzero(axis < 3)
+        on_edge = on_edge[axis[on_edge] >= 0]
+        t[on_edge] = pos[on_edge, axis[on_edge]] - rel[on_edge, axis[on_edge]]
+        ijk = np.where(centre[:, None], 0, rel + lo)
+        return cls(ijk.astype(np.int64), axis, t)
 
 
 def _vertex_keys(verts: np.ndarray, vol: np.ndarray, level: float, origin: np.ndarray,
@@ -348,6 +397,48 @@ def sample_field(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     Returns:
         (P,) float32 interpolated values; NaN where a contributing voxel is absent or unobserved.
     """
+    corners = _cell_corners(ijk, values, observed, voxel_size, points)
+    out = np.full(len(points), np.nan, dtype=np.float32)
+    if corners is None:
+        return out
+    f, found, vals = corners
+    w = np.prod(np.where(_CORNERS[None, :, :] == 1, f[:, None, :], 1.0 - f[:, None, :]), axis=2)
+    needed = w >= _WEIGHT_TOL
+    ok = np.all(found | ~needed, axis=1)
+    wf = np.where(found, w, 0.0)
+    vsum = np.sum(wf * vals, axis=1)
+    wsum = np.sum(wf, axis=1)
+    ok &= wsum > 0
+    out[ok] = (vsum[ok] / wsum[ok]).astype(np.float32)
+    return out
+
+
+def sample_gradient(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray,
+                    voxel_size: float, points: np.ndarray) -> np.ndarray:
+    """(P, 3) float64 gradient of the trilinear interpolant of a per-voxel field at world
+    points, in value units per metre (dimensionless for an SDF in metres), from the 8 voxels of
+    the cell that contains each point (arguments as :func:`sample_field`). NaN rows where one
+    of the 8 is absent or unobserved. On a cell face the interpolant's normal derivative jumps;
+    this is the one-sided derivative of the cell ``floor`` picks."""
+    corners = _cell_corners(ijk, values, observed, voxel_size, points)
+    out = np.full((len(points), 3), np.nan)
+    if corners is None:
+        return out
+    f, found, vals = corners
+    ok = found.all(axis=1)
+    lin = np.where(_CORNERS[None, :, :] == 1, f[:, None, :], 1.0 - f[:, None, :])  # (P, 8, 3)
+    slope = np.where(_CORNERS == 1, 1.0, -1.0)                                     # (8, 3)
+    for a in range(3):  # d/dx_a of prod_b lin_b: replace factor a by its derivative
+        dw = slope[None, :, a] * np.prod(np.delete(lin, a, axis=2), axis=2)       # (P, 8)
+        out[ok, a] = np.sum(dw * vals, axis=1)[ok] / voxel_size
+    return out
+
+
+def _cell_corners(ijk, values, observed, voxel_size, points):
+    """The cell of each point and its 8 corner voxels: ``(f, found, vals)`` with f (P, 3) the
+    point's fractional position in its cell (voxels, [0, 1)), found (P, 8) bool (corner present
+    and observed; order :data:`_CORNERS`) and vals (P, 8) float64 (0 where not found); None
+    when there are no points or no observed voxel. Validates the arguments."""
     ijk, values, observed, voxel_size = _check_voxels(ijk, values, observed, voxel_size)
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -358,16 +449,14 @@ def sample_field(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     points = points.astype(np.float64, copy=False)
     if not np.all(np.isfinite(points)):
         raise BftaichiError("points must be finite (world metres)")
-    out = np.full(len(points), np.nan, dtype=np.float32)
     if len(points) == 0 or not observed.any():
-        return out
+        return None
     ijk, values = ijk[observed], values[observed]
 
     g = points / voxel_size - 0.5         # continuous voxel_idx
     base = np.floor(g).astype(np.int64)
     f = g - base                          # (P, 3) in [0, 1)
     corners = base[:, None, :] + _CORNERS[None, :, :]                   # (P, 8, 3)
-    w = np.prod(np.where(_CORNERS[None, :, :] == 1, f[:, None, :], 1.0 - f[:, None, :]), axis=2)
 
     lo = ijk.min(axis=0)
     dims = ijk.max(axis=0) - lo + 1
@@ -376,12 +465,49 @@ def sample_field(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     ck = np.where(inside, _linear_key(np.where(inside[..., None], corners, lo), lo, dims), -1)
     pos = np.clip(np.searchsorted(keys, ck), 0, len(keys) - 1)
     found = inside & (keys[pos] == ck)
+    return f, found, np.where(found, values[pos], 0.0)
 
-    needed = w >= _WEIGHT_TOL
-    ok = np.all(found | ~needed, axis=1)
-    wf = np.where(found, w, 0.0)
-    vsum = np.sum(wf * np.where(found, values[pos], 0.0), axis=1)
-    wsum = np.sum(wf, axis=1)
-    ok &= wsum > 0
-    out[ok] = (vsum[ok] / wsum[ok]).astype(np.float32)
+
+# --------------------------------------------------------------------------------------------
+# the variance of the interpolated field at a vertex
+# --------------------------------------------------------------------------------------------
+
+def vertex_variance(ijk: np.ndarray, var: np.ndarray, cov: np.ndarray,
+                    edges: VertexEdges) -> np.ndarray:
+    """``a_v^T C a_v`` for each vertex v of :func:`extract_mesh` (``edges``: its
+    :class:`VertexEdges`), C the covariance of a per-voxel field given by its diagonal ``var``
+    (N,) and the covariances ``cov`` (N, 3) of each voxel with its +x, +y, +z neighbour
+    (DESIGN.md 3.7). ``ijk`` (N, 3) integer, sorted lexicographically (the band's order).
+
+    A vertex on the edge from voxel i along axis e has the two trilinear weights 1 - t on i
+    and t on i + e, so ``a^T C a = (1-t)^2 C_ii + 2 t (1-t) C_i,i+e + t^2 C_i+e,i+e``; a
+    vertex on a voxel centre has ``C_ii``. (V,) float64; NaN for cell-centre vertices and
+    where a voxel is not in ``ijk`` (callers fall back to another estimate there)."""
+    from kernels.layout import block_key_np
+
+    out = np.full(len(edges.axis), np.nan)
+    if len(ijk) == 0 or len(out) == 0:
+        return out
+    keys = block_key_np(np.asarray(ijk, np.int64))  # one int64 per voxel, ascending
+
+    def lookup(points):
+        k = block_key_np(points)
+        pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
+        return np.where(keys[pos] == k, pos, -1)
+
+    var = np.asarray(var, np.float64)
+    axis = edges.axis.astype(np.int64)
+    grid = np.flatnonzero(axis >= 0)
+    i = lookup(edges.ijk[grid])
+    on_point = (axis[grid] == 3) & (i >= 0)
+    out[grid[on_point]] = var[i[on_point]]
+    e = grid[axis[grid] < 3]
+    i = i[axis[grid] < 3]
+    step = np.zeros((len(e), 3), np.int64)
+    step[np.arange(len(e)), axis[e]] = 1
+    j = lookup(edges.ijk[e] + step)
+    ok = (i >= 0) & (j >= 0)
+    e, i, j, t = e[ok], i[ok], j[ok], edges.t[e[ok]]
+    c = np.asarray(cov, np.float64)[i, axis[e]]
+    out[e] = (1 - t) ** 2 * var[i] + 2 * t * (1 - t) * c + t ** 2 * var[j]
     return out
