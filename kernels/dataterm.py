@@ -35,7 +35,8 @@ P_JUMP = 32  # tan(normal_max_slope): neighbour depth jump limit is r D tan / f
 P_SCALE = 33  # fixed-point units per unit of S / h
 P_SHARE = 34  # most samples of one pixel that share a depth error in one voxel's estimate
 P_GATE = 35  # side gate: largest contradiction of y's side by the reference SDF, metres (0: off)
-N_PARAMS = 36
+P_INV_VOXEL = 36  # 1 / voxel_size, 1/metre
+N_PARAMS = 37
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -51,10 +52,11 @@ COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropp
 
 # Row status in frame_rows (0: no sample, or gated):
 MODE_ACCUMULATE, MODE_ROWS, MODE_MISFIT = 0, 1, 2  # what observe_row does with a sample
-#: Fixed-point units per unit of a misfit sum (chi^2 shares and pixel shares, both <= ~100).
+#: Fixed-point units per unit of a misfit sum (pixel shares and squared residuals in voxel^2).
 MISFIT_SCALE = float(1 << 24)
-#: Largest chi^2 one sample adds to the misfit (a 10-sigma residual): one gross residual (an
-#: occlusion edge) marks its voxels as misfit without swamping their neighbours' sums.
+#: Largest squared residual one sample adds to the misfit, in units of its noise variance (a
+#: 10-sigma residual): one gross residual (an occlusion edge) marks its voxels as misfit
+#: without swamping their neighbours' sums.
 MISFIT_CAP = 100.0
 ROW_ACCEPTED = 1
 ROW_DROPPED = 2
@@ -252,19 +254,24 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
                             row_a[r, c] = a[c]
                     elif ti.static(mode == MODE_MISFIT):
                         if accepted:
-                            # chi^2 of the sample against the posterior mean, capped, and its
-                            # share of the pixel (1 / min(n_acc, share)), spread by a
+                            # the sample's squared residual against the posterior mean
+                            # (capped at MISFIT_CAP sigma^2) and its noise variance, both in
+                            # voxel^2 and weighted by its share of the pixel
+                            # s = 1 / min(n_acc, share), spread over its corners by a
                             mu, R_acc = ti.static(sink[0], sink[1])
                             r = y
                             for c in ti.static(range(8)):
                                 r -= a[c] * ti.cast(mu[idx[c]], ti.f64)
                             share = w / inv_var
-                            q = ti.min(w * r * r, share * MISFIT_CAP)
+                            var_k = 1.0 / inv_var
+                            inv_h2 = prm[P_INV_VOXEL] * prm[P_INV_VOXEL]
+                            r2 = ti.min(r * r, MISFIT_CAP * var_k) * inv_h2
+                            v2 = var_k * inv_h2
                             for c in ti.static(range(8)):
-                                ti.atomic_add(R_acc[idx[c], 0],
-                                              fixed_point(a[c] * q * MISFIT_SCALE))
-                                ti.atomic_add(R_acc[idx[c], 1],
-                                              fixed_point(a[c] * share * MISFIT_SCALE))
+                                sa = a[c] * share * MISFIT_SCALE
+                                ti.atomic_add(R_acc[idx[c], 0], fixed_point(sa * r2))
+                                ti.atomic_add(R_acc[idx[c], 1], fixed_point(sa * v2))
+                                ti.atomic_add(R_acc[idx[c], 2], fixed_point(sa))
                     elif accepted:
                         S_acc, h_acc = ti.static(sink[0], sink[1])
                         for ca in ti.static(range(8)):
@@ -390,11 +397,12 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim
                  mu: _NDA(dtype=ti.f32, ndim=1), R_acc: _NDA(dtype=ti.i64, ndim=2),
                  counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
                  blocks: _NDA(dtype=ti.i32, ndim=3)):
-    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 2): per voxel,
-    ``sum_k a_k min(w_k r_k^2, MISFIT_CAP s_k)`` and ``sum_k a_k s_k`` in units of
-    1 / MISFIT_SCALE, over the accepted samples k (the same samples, rows and weights as
-    :func:`observe_frame`), ``r_k = y_k - a_k . mu`` and ``s_k = w_k sigma_k^2`` the sample's
-    share of its pixel. Integer atomics: deterministic."""
+    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 3): per voxel,
+    ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k a_k s_k sigma_k^2`` (both in
+    voxel^2) and ``sum_k a_k s_k``, in units of 1 / MISFIT_SCALE, over the accepted samples k
+    (the same samples, rows and weights as :func:`observe_frame`): ``r_k = y_k - a_k . mu``,
+    ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its pixel. Integer atomics:
+    deterministic."""
     ti.loop_config(block_dim=4)
     for vs in range((depth.shape[0] + stride - 1) // stride):
         observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,

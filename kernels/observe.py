@@ -80,7 +80,7 @@ import numpy as np
 import taichi as ti
 
 from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B, P_COS_MIN,
-                       P_GATE, P_JUMP, P_K, P_M, P_O, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
+                       P_GATE, P_INV_VOXEL, P_JUMP, P_K, P_M, P_O, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
                        P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, estimate_normals,
                        MISFIT_SCALE, finalize_stencil, misfit_frame, observe_frame,
                        observe_rows)
@@ -253,6 +253,7 @@ class Observer:
         prm[P_SCALE] = self.fixed_scale
         prm[P_SHARE] = self.share
         prm[P_GATE] = self.gate_m
+        prm[P_INV_VOXEL] = 1.0 / self.voxel_size
         return depth, prm
 
     def _scratch(self, n_rows: int) -> tuple:
@@ -348,7 +349,7 @@ class Observer:
         if mu.shape != (self.n_voxels,):
             raise ValueError(f"mu has shape {mu.shape}, expected ({self.n_voxels},)")
         if getattr(self, "_R_acc", None) is None:
-            self._R_acc = ti.ndarray(ti.i64, shape=(max(self.n_voxels, 1), 2))
+            self._R_acc = ti.ndarray(ti.i64, shape=(max(self.n_voxels, 1), 3))
             self._R_acc.fill(0)
         n_vs = (depth.shape[0] + stride - 1) // stride
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
@@ -356,15 +357,17 @@ class Observer:
             misfit_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride,
                          self.m, self.mf, mu, self._R_acc, counts, *self._scratch(n_vs))
 
-    def misfit_sums(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(chi2, share)`` (N,) float64 over the frames given to :meth:`misfit`: per voxel
-        ``sum_k a_k min(w_k r_k^2, cap)`` and ``sum_k a_k s_k`` (``s_k = w_k sigma_k^2``, the
-        sample's share of its pixel: ``share`` counts the pixels reaching the voxel). Their
-        ratio is the voxel's reduced chi^2 (1 where the residuals match the noise model)."""
+    def misfit_sums(self) -> np.ndarray:
+        """(N, 3) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
+        residuals ``sum_k a_k s_k min(r_k^2, cap sigma_k^2)`` and noise variances ``sum_k a_k
+        s_k sigma_k^2`` (metres^2) and the pixels ``sum_k a_k s_k`` (``s_k``: the sample's
+        share of its pixel), so column 0 / column 2 is the mean squared residual of the pixels
+        reaching the voxel and column 1 / column 2 their mean noise variance."""
         if getattr(self, "_R_acc", None) is None or not self.n_voxels:
-            return np.zeros(self.n_voxels), np.zeros(self.n_voxels)
+            return np.zeros((self.n_voxels, 3))
         R = self._R_acc.to_numpy()[:self.n_voxels] / MISFIT_SCALE
-        return R[:, 0], R[:, 1]
+        R[:, :2] *= self.voxel_size ** 2
+        return R
 
     # -- result ------------------------------------------------------------------------------
     def diagonal(self) -> np.ndarray:

@@ -145,33 +145,38 @@ def observe(observer, frames, stride: int):
 
 def local_misfit(observer, frames, mean: np.ndarray, nbr: np.ndarray, stride: int
                  ) -> tuple[np.ndarray, dict]:
-    """The local noise scale of the data around each band voxel: its reduced chi^2.
+    """The model error around each band voxel: the variance of the data about the posterior
+    mean beyond what their noise explains.
 
     Every frame is observed again (same samples and weights as the data term) against the
-    posterior mean; per voxel, the capped chi^2 of the samples reaching it and the pixels they
-    stand for (:meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its
-    26 neighbours (a 3-voxel window: a few pixels per voxel are too few to estimate a variance),
-    and ``f = chi^2 / pixels``. Where the residuals match the noise model, ``f ~ 1``; where the
-    data disagree with each other and with any smooth surface (thin sheets seen from both sides,
-    occlusion edges, crevices the voxels cannot hold, misregistered frames), ``f >> 1``. A
-    voxel reached by less than one pixel's worth of samples in its window keeps ``f = 1``.
+    posterior mean. Per voxel, the squared residuals and noise variances of the pixels reaching
+    it (:meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its 26
+    neighbours (a 3-voxel window: a few pixels per voxel are too few for a variance), and
+    ``b^2 = max(0, mean r^2 - mean sigma^2)``. Where the data agree with the model, ``b = 0``:
+    the fitted mean even leaves residuals a little below the noise. Where they disagree with
+    each other and with any surface the voxels can hold (thin sheets seen from both sides,
+    occlusion edges, creases finer than a voxel, misregistered frames), ``b`` is the size of
+    the disagreement. Unlike the noise, it does not average down over the pixels: it is a
+    bias of the mean there, so it adds to the variance as it is. A voxel reached by less than
+    one pixel's worth of samples in its window gets ``b = 0``.
 
-    Returns ``(f, stats)``: (N,) float32 and ``median``, ``p90``, ``voxels_scaled`` (voxels
-    with an estimate)."""
+    Returns ``(b2, stats)``: (N,) float32 metres^2 and ``voxels`` (with an estimate),
+    ``voxels_misfit`` (``b > 0``), ``median_b_m`` and ``p90_b_m`` over those with an estimate.
+    """
     for frame in frames:
         observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, stride=stride)
-    chi2, pixels = observer.misfit_sums()
+    sums = observer.misfit_sums()
     valid = nbr >= 0
     idx = np.where(valid, nbr, 0)
-    chi2_w = np.where(valid, chi2[idx], 0.0).sum(axis=1)
-    pixels_w = np.where(valid, pixels[idx], 0.0).sum(axis=1)
-    ok = pixels_w >= 1.0
-    f = np.ones(len(mean), np.float64)
-    f[ok] = chi2_w[ok] / pixels_w[ok]
-    stats = {"voxels_scaled": int(ok.sum()),
-             "median": float(np.median(f[ok])) if ok.any() else None,
-             "p90": float(np.percentile(f[ok], 90)) if ok.any() else None}
-    return f.astype(np.float32), stats
+    window = np.stack([np.where(valid, sums[idx, c], 0.0).sum(axis=1) for c in range(3)], 1)
+    ok = window[:, 2] >= 1.0
+    b2 = np.zeros(len(mean), np.float64)
+    b2[ok] = np.maximum(0.0, (window[ok, 0] - window[ok, 1]) / window[ok, 2])
+    b = np.sqrt(b2[ok])
+    stats = {"voxels": int(ok.sum()), "voxels_misfit": int(np.count_nonzero(b2 > 0)),
+             "median_b_m": float(np.median(b)) if len(b) else None,
+             "p90_b_m": float(np.percentile(b, 90)) if len(b) else None}
+    return b2.astype(np.float32), stats
 
 
 def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: float,
