@@ -142,17 +142,17 @@ class Reconstructor:
         var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
                                                 probes=variance)
         lap("variance")
-        if o.local_noise:  # the model error b^2: fully correlated between neighbours
-            b2, misfit = local_misfit(observer, frame_iter(frames, "misfit") if frame_iter
-                                      else frames, mean, band.nbr, o.stride)
-            var = var + b2
+        if o.local_noise:  # noise part scaled, model error b^2 (correlated) added
+            scale, b2, misfit = local_misfit(observer, frame_iter(frames, "misfit") if frame_iter
+                                             else frames, mean, var, band.nbr, o.stride)
+            var = var * scale + b2
             if variance:
                 from kernels.probes import FACE_PLUS
 
-                b = np.sqrt(b2)
+                g, b = np.sqrt(scale), np.sqrt(b2)
                 for e, off in enumerate(FACE_PLUS):
-                    j = band.nbr[:, off]
-                    cov[:, e] += b * np.where(j >= 0, b[np.maximum(j, 0)], 0)
+                    j = np.maximum(band.nbr[:, off], 0)
+                    cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] * g * g[j] + b * b[j], 0)
             var_stats = dict(var_stats, local_noise=misfit)
             lap("misfit")
         self.posterior = Posterior(

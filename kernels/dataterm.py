@@ -255,18 +255,22 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
                     elif ti.static(mode == MODE_MISFIT):
                         if accepted:
                             # the sample's squared residual against the posterior mean
-                            # (capped at MISFIT_CAP sigma^2) and its noise variance, both in
-                            # voxel^2 and weighted by its share of the pixel
-                            # s = 1 / min(n_acc, share), spread over its corners by a
-                            mu, R_acc = ti.static(sink[0], sink[1])
+                            # (capped at MISFIT_CAP sigma^2) and what the model expects of
+                            # it, sigma^2 - a^T Sigma a (the fit absorbs part of the noise;
+                            # a^T Sigma a ~ sum a_c^2 var_c), both in voxel^2 and weighted by
+                            # the sample's share of its pixel s = 1 / min(n_acc, share),
+                            # spread over its corners by a
+                            mu, var, R_acc = ti.static(sink[0], sink[1], sink[2])
                             r = y
+                            p = ti.f64(0.0)
                             for c in ti.static(range(8)):
                                 r -= a[c] * ti.cast(mu[idx[c]], ti.f64)
+                                p += a[c] * a[c] * ti.cast(var[idx[c]], ti.f64)
                             share = w / inv_var
                             var_k = 1.0 / inv_var
                             inv_h2 = prm[P_INV_VOXEL] * prm[P_INV_VOXEL]
                             r2 = ti.min(r * r, MISFIT_CAP * var_k) * inv_h2
-                            v2 = var_k * inv_h2
+                            v2 = ti.max(var_k - p, 0.1 * var_k) * inv_h2
                             for c in ti.static(range(8)):
                                 sa = a[c] * share * MISFIT_SCALE
                                 ti.atomic_add(R_acc[idx[c], 0], fixed_point(sa * r2))
@@ -394,16 +398,18 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
 def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim=1),
                  block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                  ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
-                 mu: _NDA(dtype=ti.f32, ndim=1), R_acc: _NDA(dtype=ti.i64, ndim=2),
+                 mu: _NDA(dtype=ti.f32, ndim=1), var: _NDA(dtype=ti.f32, ndim=1),
+                 R_acc: _NDA(dtype=ti.i64, ndim=2),
                  counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
                  blocks: _NDA(dtype=ti.i32, ndim=3)):
     """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 3): per voxel,
-    ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k a_k s_k sigma_k^2`` (both in
-    voxel^2) and ``sum_k a_k s_k``, in units of 1 / MISFIT_SCALE, over the accepted samples k
+    ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k a_k s_k (sigma_k^2 - p_k)``
+    (both in voxel^2; ``p_k = sum_c a_c^2 var_c``, at most 0.9 sigma_k^2, the part of the noise
+    the fit absorbs, from the posterior variances ``var``) and ``sum_k a_k s_k``, in units of 1 / MISFIT_SCALE, over the accepted samples k
     (the same samples, rows and weights as :func:`observe_frame`): ``r_k = y_k - a_k . mu``,
     ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its pixel. Integer atomics:
     deterministic."""
     ti.loop_config(block_dim=4)
     for vs in range((depth.shape[0] + stride - 1) // stride):
         observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
-                     blocks, (mu, R_acc), MODE_MISFIT)
+                     blocks, (mu, var, R_acc), MODE_MISFIT)

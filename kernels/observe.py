@@ -339,15 +339,17 @@ class Observer:
         return normals, fallback.astype(bool)
 
     def misfit(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, mu: np.ndarray,
-               stride: int = 1, sigma_pose_m: float | None = None) -> None:
+               var: np.ndarray, stride: int = 1, sigma_pose_m: float | None = None) -> None:
         """Add one frame's misfit against the band values ``mu`` (N,) (metres; the posterior
-        mean) to the sums :meth:`misfit_sums` returns: the same samples and weights as
+        mean, ``var`` its variance, metres^2) to the sums :meth:`misfit_sums` returns: the same samples and weights as
         :meth:`integrate`, nothing else is touched. One kernel launch; deterministic."""
         stride = self._check_stride(stride)
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         mu = np.ascontiguousarray(mu, np.float32)
-        if mu.shape != (self.n_voxels,):
-            raise ValueError(f"mu has shape {mu.shape}, expected ({self.n_voxels},)")
+        var = np.ascontiguousarray(var, np.float32)
+        if mu.shape != (self.n_voxels,) or var.shape != (self.n_voxels,):
+            raise ValueError(f"mu {mu.shape} and var {var.shape} must have shape "
+                             f"({self.n_voxels},)")
         if getattr(self, "_R_acc", None) is None:
             self._R_acc = ti.ndarray(ti.i64, shape=(max(self.n_voxels, 1), 3))
             self._R_acc.fill(0)
@@ -355,14 +357,14 @@ class Observer:
         counts = np.zeros((n_vs, N_COUNTS), np.int64)
         if self.n_voxels:
             misfit_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride,
-                         self.m, self.mf, mu, self._R_acc, counts, *self._scratch(n_vs))
+                         self.m, self.mf, mu, var, self._R_acc, counts, *self._scratch(n_vs))
 
     def misfit_sums(self) -> np.ndarray:
         """(N, 3) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
         residuals ``sum_k a_k s_k min(r_k^2, cap sigma_k^2)`` and noise variances ``sum_k a_k
         s_k sigma_k^2`` (metres^2) and the pixels ``sum_k a_k s_k`` (``s_k``: the sample's
         share of its pixel), so column 0 / column 2 is the mean squared residual of the pixels
-        reaching the voxel and column 1 / column 2 their mean noise variance."""
+        reaching the voxel and column 1 / column 2 what the model expects of it."""
         if getattr(self, "_R_acc", None) is None or not self.n_voxels:
             return np.zeros((self.n_voxels, 3))
         R = self._R_acc.to_numpy()[:self.n_voxels] / MISFIT_SCALE

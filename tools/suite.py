@@ -115,7 +115,8 @@ def judge(report: dict) -> dict:
            "f_mm": t, "f_tsdf": tsdf[f"fscore@{t:g}mm"], "f_post": post[f"fscore@{t:g}mm"],
            "seconds": report["seconds"]["total"]}
     for k in ("coverage@1sigma", "coverage@2sigma", "coverage@3sigma", "nll_vs_constant",
-              "ause", "top10_ratio", "spearman", "mean_error_m", "median_sigma_m", "n"):
+              "ause", "top10_ratio", "spearman", "mean_error_m", "median_error_m", "median_sigma_m",
+              "n"):
         row[k] = u.get(k, float("nan"))
     return row
 

@@ -143,40 +143,47 @@ def observe(observer, frames, stride: int):
     return observer.finalize()
 
 
-def local_misfit(observer, frames, mean: np.ndarray, nbr: np.ndarray, stride: int
-                 ) -> tuple[np.ndarray, dict]:
-    """The model error around each band voxel: the variance of the data about the posterior
-    mean beyond what their noise explains.
+def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.ndarray,
+                 stride: int) -> tuple[np.ndarray, np.ndarray, dict]:
+    """How well the noise model explains the data around each band voxel.
 
     Every frame is observed again (same samples and weights as the data term) against the
-    posterior mean. Per voxel, the squared residuals and noise variances of the pixels reaching
-    it (:meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its 26
-    neighbours (a 3-voxel window: a few pixels per voxel are too few for a variance), and
-    ``b^2 = max(0, mean r^2 - mean sigma^2)``. Where the data agree with the model, ``b = 0``:
-    the fitted mean even leaves residuals a little below the noise. Where they disagree with
-    each other and with any surface the voxels can hold (thin sheets seen from both sides,
-    occlusion edges, creases finer than a voxel, misregistered frames), ``b`` is the size of
-    the disagreement. Unlike the noise, it does not average down over the pixels: it is a
-    bias of the mean there, so it adds to the variance as it is. A voxel reached by less than
-    one pixel's worth of samples in its window gets ``b = 0``.
+    posterior mean. Per voxel, the squared residuals of the pixels reaching it and what the
+    model expects of them (their noise variance less the part the fit absorbs,
+    :meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its 26
+    neighbours (a 3-voxel window: a few pixels per voxel are too few for a variance). Their
+    ratio ``chi2`` (mean squared residual over its expectation) splits two ways:
 
-    Returns ``(b2, stats)``: (N,) float32 metres^2 and ``voxels`` (with an estimate),
-    ``voxels_misfit`` (``b > 0``), ``median_b_m`` and ``p90_b_m`` over those with an estimate.
+    - ``chi2 < 1``: the data are quieter than the noise model says (its sigma is an upper
+      bound: the incidence angle, the sensor); the noise part of the posterior variance is
+      scaled by ``chi2``;
+    - ``chi2 > 1``: the data disagree with each other and with any surface the voxels can hold
+      (thin sheets seen from both sides, occlusion edges, creases finer than a voxel,
+      misregistered frames). The excess ``b^2 = mean r^2 - expected`` does not average down
+      over the pixels: it is a bias of the mean there, added to the variance as it is.
+
+    A voxel reached by less than one pixel's worth of samples in its window keeps its
+    variance (scale 1, ``b = 0``).
+
+    Returns ``(scale, b2, stats)``: (N,) float32 (no unit; metres^2) and ``voxels`` (with an
+    estimate), ``median_scale``, ``voxels_misfit`` (``b > 0``), ``p90_b_m``.
     """
     for frame in frames:
-        observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, stride=stride)
+        observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, var, stride=stride)
     sums = observer.misfit_sums()
     valid = nbr >= 0
     idx = np.where(valid, nbr, 0)
     window = np.stack([np.where(valid, sums[idx, c], 0.0).sum(axis=1) for c in range(3)], 1)
     ok = window[:, 2] >= 1.0
+    scale = np.ones(len(mean), np.float64)
     b2 = np.zeros(len(mean), np.float64)
-    b2[ok] = np.maximum(0.0, (window[ok, 0] - window[ok, 1]) / window[ok, 2])
-    b = np.sqrt(b2[ok])
+    r2, expected = window[ok, 0] / window[ok, 2], window[ok, 1] / window[ok, 2]
+    scale[ok] = np.minimum(1.0, r2 / expected)
+    b2[ok] = np.maximum(0.0, r2 - expected)
     stats = {"voxels": int(ok.sum()), "voxels_misfit": int(np.count_nonzero(b2 > 0)),
-             "median_b_m": float(np.median(b)) if len(b) else None,
-             "p90_b_m": float(np.percentile(b, 90)) if len(b) else None}
-    return b2.astype(np.float32), stats
+             "median_scale": float(np.median(scale[ok])) if ok.any() else None,
+             "p90_b_m": float(np.sqrt(np.percentile(b2[ok], 90))) if ok.any() else None}
+    return scale.astype(np.float32), b2.astype(np.float32), stats
 
 
 def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: float,
