@@ -106,7 +106,7 @@ def test_run_band_npz_has_the_documented_arrays(tiny_run):
     assert cov.dtype == np.float32 and cov.shape == (n, 3)
     assert np.all(cov ** 2 <= var[:, None] * var.max() * (1 + 1e-6))  # |cov_ij| <= sqrt(var_i var_j)
     # the solve's observation model, for planning and evaluation (tiny run: tau = 6 cm)
-    assert observation["stride"] == 2 and observation["count_once"] == "voxel"
+    assert observation["stride"] == 1 and observation["count_once"] == "voxel"
     assert trunc_m == pytest.approx(0.06) and sigma_extra_m == report["solver"]["observations"][
         "noise_fit"]["sigma_extra_m"]
     tau_b = report["tsdf"]["bootstrap_trunc_m"]
