@@ -247,7 +247,7 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
             standard deviation of each predicted depth, ``sigma_z = sqrt(var at the crossing)
             / max(d mu / d z, slope_min)`` (the SDF's uncertainty turned into depth along the
             ray by the mean's slope there: 1 head-on, smaller at grazing angles).
-        slope_min: floor of that slope (the observation model's ``cos_min``).
+        slope_min: floor of that slope (no unit).
 
     Returns:
         (height, width) float32 camera depth (z_C) of the first front-facing zero crossing,

@@ -10,7 +10,9 @@ VoxelBlockGrid, fused from every other frame and judged on the frames in between
 Columns: median and mean absolute depth error on the pixels where both the method and the
 measurement have a depth, the fraction within 1 / 2 / 5 cm, completeness (predicted share of
 the valid measured pixels), and for bftaichi the coverage of its depth sigma (``|r| <= k
-sqrt(sigma_z^2 + sigma_D^2)``, k = 1, 2, 3; bftaichi/evalviews.py says exactly what is computed).
+sqrt(sigma_z^2 + sigma_D^2)``, k = 1, 2, 3; bftaichi/evaluation/evalviews.py says exactly what is
+computed) and the mean Gaussian NLL of the residuals under that sigma minus the NLL under the
+best constant sigma (below 0: the per-pixel sigma is informative).
 """
 
 from __future__ import annotations
@@ -39,7 +41,8 @@ def main(argv=None) -> int:
     from bftaichi.evaluation.evalviews import evaluate_views
 
     lines = ["| voxel | method | median abs (mm) | mean abs (mm) | within 1 / 2 / 5 cm | "
-             "completeness | sigma coverage 1 / 2 / 3 (%) |", "|---|---|---|---|---|---|---|"]
+             "completeness | sigma coverage 1 / 2 / 3 (%) | NLL - const |",
+             "|---|---|---|---|---|---|---|---|"]
     for voxel in (float(v) for v in args.voxels.split(",")):
         sets = ["scene.source=dataset", f"scene.data={args.data!r}".replace("'", '"'),
                 f"tsdf.voxel_size_m={voxel}", f"tsdf.trunc_m={2 * voxel}",
@@ -51,13 +54,15 @@ def main(argv=None) -> int:
         r = evaluate_views(cfg, out, held_out_stride=args.held_out_stride,
                            open3d=not args.no_open3d, overwrite=True, progress=False)
         cov = " / ".join(f"{100 * c:.1f}" for c in r["calibration"]["coverage_normalised"])
+        nll = f"{r['calibration']['nll_vs_constant']:+.2f}"
         for m, s in r["methods"].items():
             if not s["pixels"]:
                 continue
             lines.append(f"| {voxel * 100:g} cm | {m} | {1000 * s['median_abs_m']:.2f} | "
                          f"{1000 * s['mean_abs_m']:.1f} | {s['within_1cm']:.3f} / "
                          f"{s['within_2cm']:.3f} / {s['within_5cm']:.3f} | "
-                         f"{s['completeness']:.4f} | {cov if m == 'bftaichi' else '-'} |")
+                         f"{s['completeness']:.4f} | {cov if m == 'bftaichi' else '-'} | "
+                         f"{nll if m == 'bftaichi' else '-'} |")
         print(f"{voxel * 100:g} cm: {r['fused']} fused, {r['held_out_evaluated']} held out, "
               f"{r['seconds']}; {r['open3d']}", file=sys.stderr)
     table = "\n".join(lines)
