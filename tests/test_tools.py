@@ -50,19 +50,6 @@ def test_bench_tsdf_runs_on_a_few_frames():
     assert "frames/s" in out
 
 
-def test_calibration_reports_coverage_and_rank_correlation(tmp_path):
-    sets = [a for s in TINY_SCENE_SETS for a in ("--set", s)]
-    out = _run([TOOLS / "calibration.py", "scenes/default.toml", *sets, "--only", "default",
-                "--markdown", tmp_path / "c.md"])
-    row = [ln for ln in out.splitlines() if ln.startswith("| default |")]
-    assert len(row) == 1
-    cells = [c.strip() for c in row[0].strip("|").split("|")]
-    cover = [float(v) for v in cells[4].split("/")]
-    assert 0 <= cover[0] <= cover[1] <= cover[2] <= 100  # coverage grows with k
-    assert int(cells[1]) > 0 and -1 <= float(cells[6]) <= 1  # voxels; Spearman is a correlation
-    assert (tmp_path / "c.md").read_text().startswith("Calibration on")
-
-
 def test_reproduce_paper_prints_the_three_rows(tmp_path):
     out = _run([TOOLS / "reproduce_paper.py", "--set", "synthetic.n_views=4",
                 "--markdown", tmp_path / "t.md", "--fig2", tmp_path / "fig2.png",
