@@ -36,7 +36,8 @@ P_SCALE = 33  # fixed-point units per unit of S / h
 P_SHARE = 34  # most samples of one pixel that share a depth error in one voxel's estimate
 P_GATE = 35  # side gate: largest contradiction of y's side by the reference SDF, metres (0: off)
 P_INV_VOXEL = 36  # 1 / voxel_size, 1/metre
-N_PARAMS = 37
+P_VAR_CORR = 37  # per-frame noise shared by a voxel's pixels, metres^2 (see observe_row)
+N_PARAMS = 38
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -179,7 +180,12 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
             # y = (z - D) <n, ray>: an axial depth error e moves y by e |<n, ray>|
             sd = (prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) * ti.max(cos_a, cos_min) \
                 * ti.cast(ray.norm(), ti.f64)
-            inv_var = 1.0 / (sd * sd + prm[P_VAR_EXTRA])  # 1 / sigma^2 of the pixel
+            # a frame's pixels over one voxel share its pose / calibration error (variance
+            # P_VAR_CORR): their mean has variance sd^2 / rho + corr, so each of the rho
+            # pixels counts as sd^2 + rho corr (rho = the voxel's footprint in pixels, >= 1)
+            rho = ti.max(1.0, (prm[P_K] / (D * prm[P_INV_VOXEL] * ti.cast(stride, ti.f64))) ** 2)
+            var_pixel = sd * sd + prm[P_VAR_EXTRA] + prm[P_VAR_CORR]  # one pixel's noise
+            inv_var = 1.0 / (var_pixel + (rho - 1.0) * prm[P_VAR_CORR])
             m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
             # pass 0 looks the cells up and counts the pixel's accepted samples n_acc (the
             # corner indices wait in this row's scratch); pass 1 adds the accepted samples
@@ -267,7 +273,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
                                 r -= a[c] * ti.cast(mu[idx[c]], ti.f64)
                                 p += a[c] * a[c] * ti.cast(var[idx[c]], ti.f64)
                             share = w / inv_var
-                            var_k = 1.0 / inv_var
+                            var_k = var_pixel
                             inv_h2 = prm[P_INV_VOXEL] * prm[P_INV_VOXEL]
                             r2 = ti.min(r * r, MISFIT_CAP * var_k) * inv_h2
                             v2 = ti.max(var_k - p, 0.1 * var_k) * inv_h2

@@ -47,8 +47,9 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
 
 Fixed point (determinism without float atomics): every contribution ``x`` is added to int64
 accumulators as ``round(x * scale)`` (round half away from zero), ``scale = 2^FRACTION_BITS /
-w_max`` rounded down to a power of two, ``w_max = 1 / (a^2 + sigma_pose^2 + sigma_model^2)``
-the largest possible weight (sigma_depth >= a; a frame's sigma_pose may not go below the
+w_max`` rounded down to a power of two, ``w_max = 1 / ((a cos_min)^2 + sigma_pose^2 +
+sigma_model^2)``
+the largest possible weight (sigma_depth >= a cos_min; a frame's sigma_pose may not go below the
 Observer's). A contribution to ``S`` is at most ``w_max`` (``w <= w_max``,
 ``a_c a_c' <= 1``), i.e. at most 2^32 units; its rounding error is at most 2^-33 w_max, far below
 the float32 resolution of any entry it lands in. An entry may grow to ``SATURATION = 2^62``
@@ -80,7 +81,7 @@ import numpy as np
 import taichi as ti
 
 from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B, P_COS_MIN,
-                       P_GATE, P_INV_VOXEL, P_JUMP, P_K, P_M, P_O, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
+                       P_GATE, P_INV_VOXEL, P_JUMP, P_VAR_CORR, P_K, P_M, P_O, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
                        P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, estimate_normals,
                        MISFIT_SCALE, finalize_stencil, misfit_frame, observe_frame,
                        observe_rows)
@@ -118,6 +119,10 @@ class Observer:
             ``trunc_m``, no default; ``trunc_m``: as far as behind). Samples there observe
             ``y = <n, x - p>`` like the others: the free space the ray crossed, as the TSDF
             sees it.
+        sigma_corr_m: per-frame noise (pose and calibration errors), metres, shared by the pixels
+            of one frame over one voxel: each of the ``rho = (fx / (D voxel_size^-1 stride))^2``
+            pixels a voxel spans gets ``rho sigma_corr^2`` more variance, so one frame tells a
+            voxel at most ``1 / sigma_corr^2`` however many pixels cover it (0: independent).
         gate_m, reference: the side gate of step 3b: the gate in metres (no default; 0: no
             gate, no reference needed) and the (N,) reference SDF (metres; NaN where there is
             none).
@@ -135,7 +140,7 @@ class Observer:
                  cos_min: float = 0.3, sigma_pose_m: float = 0.0, sigma_model_m: float = 0.001,
                  normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0,
                  count_once: str, front_m: float, gate_m: float,
-                 reference: np.ndarray | None = None):
+                 reference: np.ndarray | None = None, sigma_corr_m: float = 0.0):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
@@ -165,7 +170,7 @@ class Observer:
                              "in (0, 90)")
         if int(normal_radius_px) < 1:
             raise ValueError(f"Observer: normal_radius_px = {normal_radius_px} must be >= 1")
-        var_floor = depth_a_m ** 2 + sigma_pose_m ** 2 + sigma_model_m ** 2
+        var_floor = (depth_a_m * cos_min) ** 2 + sigma_pose_m ** 2 + sigma_model_m ** 2
         if var_floor <= 0:
             raise ValueError("Observer: depth_a_m, sigma_pose_m and sigma_model_m are all 0 (the "
                              "observation weight 1 / sigma^2 needs a floor)")
@@ -180,6 +185,9 @@ class Observer:
         self.depth_model = (float(depth_a_m), float(depth_b), float(depth_z0_m), float(cos_min))
         self.sigma_pose_m = float(sigma_pose_m)
         self.sigma_model_m = float(sigma_model_m)
+        if not (math.isfinite(sigma_corr_m) and sigma_corr_m >= 0):
+            raise ValueError(f"Observer: sigma_corr_m = {sigma_corr_m} must be >= 0")
+        self.sigma_corr_m = float(sigma_corr_m)
         self.normal_radius_px = int(normal_radius_px)
         self.normal_max_slope_deg = float(normal_max_slope_deg)
         self.m = sample_count(self.trunc_m, self.spacing_m) // 2
@@ -254,6 +262,7 @@ class Observer:
         prm[P_SHARE] = self.share
         prm[P_GATE] = self.gate_m
         prm[P_INV_VOXEL] = 1.0 / self.voxel_size
+        prm[P_VAR_CORR] = self.sigma_corr_m ** 2
         return depth, prm
 
     def _scratch(self, n_rows: int) -> tuple:

@@ -116,7 +116,8 @@ def test_noise_fit_finds_the_noise_the_depth_model_misses(tmp_path):
     fits = {}
     for name, extra in (("kinect", ["synthetic.noise=kinect"]),
                         ("gauss", ["synthetic.noise=gaussian", "synthetic.sigma_m=0.01"])):
-        cfg = _sphere_cfg(0.02, extra + ["run.plots=false", "eval.n_samples=2000"])
+        cfg = _sphere_cfg(0.02, extra + ["run.plots=false", "eval.n_samples=2000",
+                                         "observation.fit_noise=true"])
         report = bf.run(cfg, tmp_path / name, progress=False)
         fits[name] = report["solver"]["observations"]["noise_fit"]
     assert fits["gauss"]["pixels"] > 1000 and fits["gauss"]["frames"] == 16
