@@ -19,7 +19,7 @@ __all__ = ["Posterior", "VERTEX_ATTRS", "mesh_attrs"]
 #: band.npz arrays of the DESIGN.md section 4 contract, and those that let planning and
 #: evaluation reload the posterior's observation model (not written by older versions).
 BAND_ARRAYS = ("ijk", "voxel_size", "mean", "var", "tsdf", "weight")
-MODEL_ARRAYS = ("observation", "trunc_m", "bootstrap_trunc_m", "sigma_extra_m")
+MODEL_ARRAYS = ("observation", "trunc_m", "bootstrap_trunc_m", "sigma_extra_m", "sigma_corr_m")
 #: |grad mean| is floored here for ``sigma_pos = sigma / |grad mean|`` (dimensionless; an SDF
 #: has slope 1). Where the mean is nearly flat (thin structures, where the two sides' bands
 #: meet, or far from the data) the position is not determined by the SDF's std alone, and an
@@ -56,7 +56,8 @@ class Posterior:
             version): what the planner must reproduce to predict a new view's information.
         trunc_m: the observation truncation tau, metres; ``bootstrap_trunc_m``: alpha tau.
         sigma_extra_m: the extra per-pixel noise fitted to the frames, metres
-            (``observation.fit_noise``; 0 without a fit).
+            (``observation.fit_noise``; 0 without a fit); ``sigma_corr_m``: its part shared by
+            neighbouring pixels (0 in a band.npz of an older version).
         solver: MAP PCG stats (converged, iterations, relative_residual, free_space).
         variance: probe stats (probes, method, iterations, not_converged).
         observations: counts of the observation pass and the noise fit.
@@ -72,6 +73,7 @@ class Posterior:
     trunc_m: float = 0.0
     bootstrap_trunc_m: float = 0.0
     sigma_extra_m: float = 0.0
+    sigma_corr_m: float = 0.0
     solver: dict = field(default_factory=dict)
     variance: dict = field(default_factory=dict)
     observations: dict = field(default_factory=dict)
@@ -90,7 +92,8 @@ class Posterior:
         """The arrays of ``band.npz``: the DESIGN.md section 4 contract (``ijk, voxel_size,
         mean, var, tsdf, weight``), ``cov`` ((N, 3) float32 m^2, see the class docstring; left
         out when None) and the observation model (``observation``: its settings as a JSON
-        string, ``trunc_m``, ``bootstrap_trunc_m``, ``sigma_extra_m``; float64, metres)."""
+        string, ``trunc_m``, ``bootstrap_trunc_m``, ``sigma_extra_m``, ``sigma_corr_m``; float64,
+        metres)."""
         arrays = {"ijk": self.ijk, "voxel_size": np.float32(self.voxel_size), "mean": self.mean,
                   "var": self.var, "tsdf": self.tsdf, "weight": self.weight}
         if self.cov is not None:
@@ -99,7 +102,8 @@ class Posterior:
             arrays.update(observation=np.array(json.dumps(asdict(self.observation))),
                           trunc_m=np.float64(self.trunc_m),
                           bootstrap_trunc_m=np.float64(self.bootstrap_trunc_m),
-                          sigma_extra_m=np.float64(self.sigma_extra_m))
+                          sigma_extra_m=np.float64(self.sigma_extra_m),
+                          sigma_corr_m=np.float64(self.sigma_corr_m))
         return arrays
 
     @classmethod
@@ -126,7 +130,7 @@ class Posterior:
         if "cov" in data and data["cov"].shape != (n, 3):
             raise DataError(f"{path}: array cov has shape {data['cov'].shape}, not ({n}, 3)")
         model = {}
-        if all(k in data for k in MODEL_ARRAYS):
+        if all(k in data for k in MODEL_ARRAYS if k != "sigma_corr_m"):
             try:
                 obs = ObservationConfig(**json.loads(str(data["observation"])))
             except (ValueError, TypeError) as e:
@@ -134,7 +138,9 @@ class Posterior:
                                 f"observation settings ({e})") from None
             model = {"observation": obs, "trunc_m": float(data["trunc_m"]),
                      "bootstrap_trunc_m": float(data["bootstrap_trunc_m"]),
-                     "sigma_extra_m": float(data["sigma_extra_m"])}
+                     "sigma_extra_m": float(data["sigma_extra_m"]),
+                     "sigma_corr_m": float(data["sigma_corr_m"]) if "sigma_corr_m" in data
+                     else 0.0}
         band = Band.from_voxels(data["ijk"], data["tsdf"], data["weight"])
         return cls(band=band, voxel_size=float(data["voxel_size"]),
                    mean=data["mean"].astype(np.float32), var=data["var"].astype(np.float32),

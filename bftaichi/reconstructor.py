@@ -123,12 +123,13 @@ class Reconstructor:
         lap = _Lap()
         band, x0 = build_band(self.voxels, cfg.tsdf.bootstrap_trunc_m)               # step 2
         lap("band")
-        noise = {"sigma_extra_m": 0.0}
+        noise = {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0}
         if o.fit_noise:
             noise = estimate_extra_noise(frames, band, o, vs, cfg.tsdf.bootstrap_trunc_m,
                                          (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
         lap("noise")
-        observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"])           # step 3
+        observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"],            # step 3
+                                 noise["sigma_corr_m"])
         S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
                                     else frames, o.stride)
         lap("observe")
@@ -159,7 +160,8 @@ class Reconstructor:
             band=band, voxel_size=vs, mean=mean, var=np.asarray(var, np.float32),
             cov=cov if variance else None,
             observation=o, trunc_m=tau, bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,
-            sigma_extra_m=float(noise["sigma_extra_m"]), solver=map_stats,
+            sigma_extra_m=float(noise["sigma_extra_m"]),
+            sigma_corr_m=float(noise["sigma_corr_m"]), solver=map_stats,
             variance=_plain(var_stats), observations=_plain(dict(counts, noise_fit=noise)),
             seconds=lap.seconds)
         return self.posterior

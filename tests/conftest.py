@@ -47,7 +47,8 @@ def posterior_system(recon):
     cfg, post = recon.config, recon.posterior
     vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
     band, _ = build_band(recon.voxels, cfg.tsdf.bootstrap_trunc_m)
-    observer = make_observer(band, cfg.observation, vs, tau, post.sigma_extra_m)
+    observer = make_observer(band, cfg.observation, vs, tau, post.sigma_extra_m,
+                             post.sigma_corr_m)
     S, h, _ = observe(observer, recon.frames, cfg.observation.stride)
     return band, add_prior(S, h, band, cfg.prior, cfg.band.stencil, vs)
 

@@ -79,3 +79,18 @@ def test_vertex_sigma_accuracy_prints_a_row_per_estimator():
                                     "probes K=16 (var only, cov=0)"]
     median = {r[3]: float(r[4].rstrip(" %")) for r in rows}
     assert median["probes K=16 (cov)"] < median["probes K=16 (var only, cov=0)"]
+
+
+def test_evalviews_table_and_gross_errors_on_a_few_real_frames(tmp_path):
+    data = SHARED / "rgbd" / "7scenes-redkitchen"
+    if not data.exists():
+        pytest.skip(f"{data} not found")
+    out = _run([TOOLS / "evalviews_table.py", "--frames", "0:6", "--voxels", "0.08",
+                "--no-open3d", "--out", tmp_path, "--markdown", tmp_path / "ev.md"])
+    rows = [ln for ln in out.splitlines() if ln.startswith("| 8 cm |")]
+    assert [r.split("|")[2].strip() for r in rows] == ["bftaichi", "tsdf"]
+    nll = rows[0].split("|")[-2].strip()
+    assert nll.startswith(("+", "-")) and float(nll) == float(nll)  # the NLL column, finite
+    out = _run([TOOLS / "gross_errors.py", tmp_path / "evalviews-8cm", "--frames", "6",
+                "--every", "2"])
+    assert "pixels where all three have depth" in out and "in front of the measured depth" in out

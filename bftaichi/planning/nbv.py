@@ -222,7 +222,8 @@ class Planner:
         self.observed = post.band.observed.astype(np.uint8)
         # the noise fitted to the fused frames (ObservationConfig.fit_noise) holds for new ones
         self.sigma_model_m = float(np.hypot(o.sigma_model_m, post.sigma_extra_m))
-        self.observer = make_observer(post.band, o, vs, tau, post.sigma_extra_m)
+        self.observer = make_observer(post.band, o, vs, tau, post.sigma_extra_m,
+                                      post.sigma_corr_m)
         eps = cfg.nbv.eps_voxels * vs
         self.omega = (post.weight > 0) & (np.abs(post.mean) <= eps)
         s = np.asarray(post.var, np.float64)

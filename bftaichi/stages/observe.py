@@ -77,13 +77,13 @@ class ObservationConfig:
 
     fit_noise: bool = True
     """Fit the per-frame noise the depth model does not explain (pose and calibration errors of
-    a recorded trajectory) to the frames before observing them (:func:`estimate_extra_noise`:
-    residuals of head-on pixels against the bootstrap). It is correlated: a frame's pixels over
-    one voxel share it, so each frame tells a voxel at most ``1 / e^2`` however many pixels
-    cover it (``sigma_corr_m`` of :class:`kernels.observe.Observer`), instead of a stride that
-    drops pixels. On redkitchen it fits 6.5 mm at 2 cm; on synthetic scenes, whose noise the
-    model holds, under 1 mm. report.json: ``solver.observations.noise_fit``; band.npz:
-    ``sigma_extra_m``."""
+    a recorded trajectory, or a noisier sensor) to the frames before observing them
+    (:func:`estimate_extra_noise`: residuals of head-on pixels against the bootstrap). The part
+    neighbouring pixels share (pose, calibration) is modelled as a correlation: a frame's pixels
+    over one voxel share it, so each frame tells a voxel at most ``1 / e_corr^2`` however many
+    pixels cover it (``sigma_corr_m`` of :class:`kernels.observe.Observer`), instead of a stride
+    that drops pixels; the rest is independent per pixel. report.json:
+    ``solver.observations.noise_fit``; band.npz: ``sigma_extra_m``, ``sigma_corr_m``."""
 
     local_noise: bool = True
     """Judge the noise model against the data around each voxel after the solve
@@ -124,20 +124,23 @@ class ObservationConfig:
 
 
 def make_observer(band, obs: ObservationConfig, voxel_size_m: float, trunc_m: float,
-                  sigma_extra_m: float = 0.0):
+                  sigma_extra_m: float = 0.0, sigma_corr_m: float = 0.0):
     """The :class:`kernels.observe.Observer` of ``band`` (a :class:`~.band.Band`) with the
     observation model ``obs``, the observation truncation ``trunc_m`` (tau, metres) and the
-    fitted extra noise ``sigma_extra_m`` (metres; per frame, shared by the pixels a voxel
-    spans: ``sigma_corr_m`` of the Observer).
-    The side gate tests against the band's bootstrap TSDF (:attr:`Band.reference`)."""
+    fitted extra noise ``sigma_extra_m`` (metres), of which ``sigma_corr_m`` is shared by a
+    frame's pixels over a voxel (``sigma_corr_m`` of the Observer) and the rest is independent
+    per pixel (added to ``sigma_model_m`` in quadrature). The side gate tests against the
+    band's bootstrap TSDF (:attr:`Band.reference`)."""
     from kernels.observe import Observer
 
+    corr = min(float(sigma_corr_m), float(sigma_extra_m))
+    independent = float(np.sqrt(max(sigma_extra_m ** 2 - corr ** 2, 0.0)))
     return Observer(band.block_keys, band.block_table, len(band), voxel_size_m, trunc_m,
                     spacing_m=obs.spacing_voxels * voxel_size_m, depth_a_m=obs.depth_a_m,
                     depth_b=obs.depth_b, depth_z0_m=obs.depth_z0_m, cos_min=obs.cos_min,
                     sigma_pose_m=obs.sigma_pose_m,
-                    sigma_model_m=obs.sigma_model_m, sigma_corr_m=float(sigma_extra_m),
-                    count_once=obs.count_once, front_m=obs.front * trunc_m,
+                    sigma_model_m=float(np.hypot(obs.sigma_model_m, independent)),
+                    sigma_corr_m=corr, count_once=obs.count_once, front_m=obs.front * trunc_m,
                     reference=band.reference, gate_m=obs.gate * trunc_m)
 
 
@@ -230,17 +233,23 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     ``median(|r| / sqrt(sigma_D^2 + e^2)) = 0.6745`` (the median of a standard normal's
     ``|x|``; 0 when the model alone already reaches it). Robust to the outliers and
     deterministic. The TSDF holds the frame itself (in-sample), so ``e`` is biased low by about
-    ``1/n`` of the variance for a point seen in n frames. The observations treat ``e`` as shared
-    by a frame's pixels over a voxel (``sigma_corr_m`` of :class:`kernels.observe.Observer`).
+    ``1/n`` of the variance for a point seen in n frames.
 
-    Returns ``{"sigma_extra_m": e, "pixels": n, "frames": k, "median_normalised_model": m0}``
-    (m0: the statistic with ``e = 0``; 0.6745 is calibrated)."""
+    The part of ``e`` that neighbouring pixels share (pose and calibration errors) is the mean
+    product of the residuals of cast pixels ``stride`` apart, ``c`` (independent noise averages
+    out of it): ``e_corr = sqrt(clip(c, 0, e^2))``; the rest, ``sqrt(e^2 - e_corr^2)``, is
+    independent per pixel (:func:`make_observer` splits them).
+
+    Returns ``{"sigma_extra_m": e, "sigma_corr_m": e_corr, "pixels": n, "frames": k,
+    "median_normalised_model": m0}`` (m0: the statistic with ``e = 0``; 0.6745 is
+    calibrated)."""
     from kernels.raycast import raycast_depth
 
     n = len(frames)
     picks = np.unique(np.linspace(0, n - 1, min(n_frames, n)).round().astype(int)) if n else []
     observed = band.observed.astype(np.uint8)
     r_all, s_all = [], []
+    lag_sum, lag_n = 0.0, 0
     for i in picks:
         f = frames[int(i)]
         h, w = f.depth_m.shape
@@ -248,16 +257,24 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
                           f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=stride)
         D = np.asarray(f.depth_m, np.float64)
         both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64))
-        r = z[both] - D[both]
-        keep = np.abs(r) < bootstrap_trunc_m
-        r_all.append(np.abs(r[keep]))
-        s_all.append(obs.axial_sigma_m(D[both][keep]))
+        res = np.where(both, z - D, 0.0)
+        both &= np.abs(res) < bootstrap_trunc_m
+        r_all.append(np.abs(res[both]))
+        s_all.append(obs.axial_sigma_m(D[both]))
+        # products of the residuals of neighbouring cast pixels (stride apart): independent
+        # noise averages out of them, noise the pixels share (pose, calibration) does not
+        g, m = res[::stride, ::stride], both[::stride, ::stride]
+        for a, b, ma, mb in ((g[:, :-1], g[:, 1:], m[:, :-1], m[:, 1:]),
+                             (g[:-1], g[1:], m[:-1], m[1:])):
+            pair = ma & mb
+            lag_sum += float(np.sum(a[pair] * b[pair]))
+            lag_n += int(pair.sum())
     r = np.concatenate(r_all) if r_all else np.zeros(0)
     s = np.concatenate(s_all) if s_all else np.zeros(0)
     target = 0.6744897501960817  # median of |N(0, 1)|
     if len(r) < 100:
-        return {"sigma_extra_m": 0.0, "pixels": int(len(r)), "frames": int(len(picks)),
-                "median_normalised_model": None}
+        return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0, "pixels": int(len(r)),
+                "frames": int(len(picks)), "median_normalised_model": None}
 
     def stat(e):
         return float(np.median(r / np.sqrt(s * s + e * e)))
@@ -270,5 +287,7 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if stat(mid) > target else (lo, mid)
         e = hi
-    return {"sigma_extra_m": e, "pixels": int(len(r)), "frames": int(len(picks)),
-            "median_normalised_model": m0}
+    shared = lag_sum / lag_n if lag_n else 0.0
+    corr = float(np.sqrt(min(max(shared, 0.0), e * e)))
+    return {"sigma_extra_m": e, "sigma_corr_m": corr, "pixels": int(len(r)),
+            "frames": int(len(picks)), "median_normalised_model": m0}

@@ -1,0 +1,73 @@
+#!/usr/bin/env python
+"""Where do the posterior's gross held-out errors come from: false surfaces in front of the
+measured depth, or missing ones behind it?
+
+Reads an ``evalviews`` run folder (``band.npz`` and ``tsdf_mesh.ply``, e.g. one written by
+``tools/evalviews_table.py``), renders the posterior (ray cast of ``mu = 0``) and the TSDF mesh at
+every ``--every``-th frame of the first ``--frames`` of the dataset, and counts the pixels more
+than 5 cm off for one method while the other is within 2 cm::
+
+    python tools/evalviews_table.py --frames 0:100 --voxels 0.02 --no-open3d --out out/ev
+    python tools/gross_errors.py out/ev/evalviews-2cm --frames 100 --every 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "rgbd" / "7scenes-redkitchen"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("run", type=Path, help="run folder with band.npz and tsdf_mesh.ply")
+    ap.add_argument("--data", default=str(DATA), help="the dataset the run fused")
+    ap.add_argument("--frames", type=int, default=100, help="first N frames of the dataset")
+    ap.add_argument("--every", type=int, default=10, help="frame step (odd offsets: held out)")
+    args = ap.parse_args(argv)
+
+    import numpy as np
+    import trimesh
+
+    from bftaichi.backend import init
+    from bftaichi.formats import open_dataset
+    from bftaichi.formats.synthetic import DepthRenderer
+    from bftaichi.io import read_mesh_ply
+    from bftaichi.posterior import Posterior
+    from kernels.raycast import raycast_depth
+
+    init("cpu")
+    post = Posterior.load(args.run / "band.npz")
+    v, f, _ = read_mesh_ply(args.run / "tsdf_mesh.ply")
+    tsdf = DepthRenderer(trimesh.Trimesh(v, f, process=False))
+    ds = open_dataset(args.data)
+    observed = (post.weight > 0).astype(np.uint8)
+    front = behind = tsdf_only = pixels = 0
+    for i in range(1, min(args.frames, len(ds)), args.every):
+        fr = ds[i]
+        h, w = fr.depth_m.shape
+        z = raycast_depth(post.band.block_keys, post.band.block_table, post.mean, observed,
+                          post.voxel_size, fr.K, fr.T_W_C, w, h, 0.1, 6.0)
+        T = np.array(fr.T_W_C, np.float64)
+        U, _, Vt = np.linalg.svd(T[:3, :3])
+        T[:3, :3] = U @ Vt
+        zt = tsdf.render(fr.K, T, w, h)
+        D = fr.depth_m
+        both = (z > 0) & (D > 0) & (zt > 0)
+        e, et = z - D, zt - D
+        post_only = both & (np.abs(e) > 0.05) & (np.abs(et) < 0.02)
+        front += int(np.sum(post_only & (e < 0)))
+        behind += int(np.sum(post_only & (e > 0)))
+        tsdf_only += int(np.sum(both & (np.abs(et) > 0.05) & (np.abs(e) < 0.02)))
+        pixels += int(both.sum())
+    print(f"{pixels} pixels where all three have depth; posterior > 5 cm off while the TSDF is "
+          f"within 2 cm: {front} in front of the measured depth, {behind} behind; the TSDF > 5 cm "
+          f"off while the posterior is within 2 cm: {tsdf_only}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
