@@ -25,6 +25,9 @@ SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 3 ring views on one side,
     "synthetic.cam_height_m=0.2", "synthetic.width=80", "synthetic.height=60",
     "synthetic.fx=80", "synthetic.fy=80", "synthetic.cx=39.5", "synthetic.cy=29.5",
     "tsdf.voxel_size_m=0.03", "tsdf.trunc_m=0.06", "observation.stride=1",
+    # the planner's utility is judged against the exact Gaussian reduction of the same Q: the
+    # variance corrections measured after the solve (local_noise) are not part of Q
+    "observation.local_noise=false",
 )
 
 
@@ -113,13 +116,13 @@ def test_fast_utility_ranks_like_the_exact_variance_reduction(half_sphere):
     assert exact.max() > 10 * max(exact.min(), 1e-30)  # the candidates do differ
     assert spearmanr(fast, exact).statistic >= 0.85
     # the local update ignores correlations (the exact gain of a voxel is shared with its
-    # correlated neighbours): it overestimates, by a similar factor for every candidate (1.25
-    # to 2.1 here; the views that graze the seen half's rim, where the ray caster's entry
-    # points (kernels/raycast.py step 3b) predict surface in thin observed cells, most)
+    # correlated neighbours, and a view's information couples neighbouring voxels): its
+    # factor against the exact reduction differs from candidate to candidate (0.52 to 2.05
+    # here since issue 15's noise model, which weights oblique pixels up), but stays within
+    # a band and keeps the ranking
     seen = exact > 0
     ratio = fast[seen] / exact[seen]
-    assert np.all((ratio >= 1.0) & (ratio <= 2.5)), ratio
-    assert ratio.max() / ratio.min() < 2.0, ratio
+    assert np.all((ratio >= 0.4) & (ratio <= 2.5)), ratio
     assert np.all(fast[~seen] == 0)
 
 

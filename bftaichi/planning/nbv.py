@@ -14,10 +14,11 @@ For a candidate view ``v`` (pose ``T_W_C``, the run's intrinsics):
    voxels with ``|mu_i| <= eps``, with the *local update* ``s'_i = s_i / (1 + s_i d_i)``: the
    exact posterior variance of voxel i if the view's information on it were the only change
    (a rank-one update of Q along ``e_i``). It ignores the correlations between voxels (what
-   one voxel learns, its correlated neighbours partly knew), so it overestimates the exact
-   reduction, by 1.25-2.1x on the small problem of tests/test_nbv.py, but by a similar factor
-   for every candidate: checked against ``diag((Q + A_v^T W_v A_v)^-1)`` there (Spearman of
-   the two rankings over 16 candidates >= 0.85).
+   one voxel learns, its correlated neighbours partly knew; a view's information couples
+   neighbouring voxels), so it is off the exact reduction, by 0.52-2.05x on the small problem
+   of tests/test_nbv.py, but ranks the candidates like it: checked against
+   ``diag((Q + A_v^T W_v A_v)^-1)`` there (Spearman of the two rankings over 16 candidates
+   >= 0.85).
 4. **Unknown space**: a ray that leaves the space some frame has seen (:class:`CoverageGrid`,
    a coarse grid over the region of interest) before the predicted surface, or with no
    surface predicted, enters unseen space at its *frontier cell*; what it would observe there
