@@ -216,14 +216,17 @@ class Observer:
         self.h_acc = ti.ndarray(ti.i64, shape=(n,))
         self._params = np.zeros(N_PARAMS, np.float64)
         self._scratch_buf = None
+        self._R_acc = None  # misfit sums (N, 3), allocated by the first misfit()
         self.reset()
 
     def reset(self) -> None:
-        """Forget all frames (zero the accumulators and counters)."""
+        """Forget all frames (zero the accumulators, the misfit sums and the counters)."""
         self.S_acc.fill(0)
         self.h_acc.fill(0)
         self.counts = np.zeros(N_COUNTS, np.int64)
         self.frames = 0
+        if self._R_acc is not None:
+            self._R_acc.fill(0)
 
     # -- per frame ---------------------------------------------------------------------------
     def _frame_params(self, depth_m, K, T_W_C, sigma_pose_m):
@@ -359,7 +362,7 @@ class Observer:
         if mu.shape != (self.n_voxels,) or var.shape != (self.n_voxels,):
             raise ValueError(f"mu {mu.shape} and var {var.shape} must have shape "
                              f"({self.n_voxels},)")
-        if getattr(self, "_R_acc", None) is None:
+        if self._R_acc is None:
             self._R_acc = ti.ndarray(ti.i64, shape=(max(self.n_voxels, 1), 3))
             self._R_acc.fill(0)
         n_vs = (depth.shape[0] + stride - 1) // stride
@@ -374,7 +377,7 @@ class Observer:
         s_k sigma_k^2`` (metres^2) and the pixels ``sum_k a_k s_k`` (``s_k``: the sample's
         share of its pixel), so column 0 / column 2 is the mean squared residual of the pixels
         reaching the voxel and column 1 / column 2 what the model expects of it."""
-        if getattr(self, "_R_acc", None) is None or not self.n_voxels:
+        if self._R_acc is None or not self.n_voxels:
             return np.zeros((self.n_voxels, 3))
         R = self._R_acc.to_numpy()[:self.n_voxels] / MISFIT_SCALE
         R[:, :2] *= self.voxel_size ** 2

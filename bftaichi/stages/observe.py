@@ -182,7 +182,7 @@ def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.nd
     sums = observer.misfit_sums()
     valid = nbr >= 0
     idx = np.where(valid, nbr, 0)
-    window = np.stack([np.where(valid, sums[idx, c], 0.0).sum(axis=1) for c in range(3)], 1)
+    window = np.where(valid[..., None], sums[idx], 0.0).sum(axis=1)  # (N, 3) over 27 voxels
     ok = window[:, 2] >= 1.0
     scale = np.ones(len(mean), np.float64)
     b2 = np.zeros(len(mean), np.float64)
