@@ -5,8 +5,10 @@ docstring of :mod:`kernels.observe`, whose :class:`~kernels.observe.Observer` is
 front of these kernels: it checks the inputs and fills the per-frame parameter vector
 (``P_*`` slots below).
 
-Determinism: :func:`observe_frame` adds integers with atomics (bitwise reproducible whatever
-the thread schedule); every other kernel writes each output element from one thread.
+Determinism: :func:`observe_frame` and :func:`misfit_frame` add integers, each thread into its
+own copy of the accumulators (``parts``, summed when read), without atomics: the sums are
+bitwise reproducible whatever the thread schedule; every other kernel writes each output
+element from one thread.
 """
 
 import taichi as ti
@@ -16,7 +18,14 @@ from .layout import BLOCK, CENTRE
 from .lookup import band_index
 
 FRACTION_BITS = 32  # one maximal-weight contribution = 2^32 fixed-point units
-SATURATION = 1 << 62  # |entry| beyond this (before an add) is counted as saturated
+SATURATION = 1 << 60  # |entry| beyond this (before an add) is counted as saturated
+MAX_PARTS = 4  # accumulator copies (one per thread): their sum stays below 2^63
+#: Taichi's CPU backend hands a parallel loop to its threads in chunks of at least 512
+#: iterations (fewer run on one thread, whatever ``block_dim`` says). The accumulating kernels
+#: loop over ``n_parts * PART_GRAIN`` tasks of which only every PART_GRAIN-th works, on one part
+#: of the accumulators: each part is written by exactly one task (no race, whatever the
+#: chunking) and the working tasks fall into different chunks, i.e. threads.
+PART_GRAIN = 1024
 N_HALF = 27 - CENTRE  # accumulated stencil columns: offsets o = 13..26
 
 # Per-frame parameters, one float64 vector (a single cheap kernel argument):
@@ -37,7 +46,9 @@ P_SHARE = 34  # most samples of one pixel that share a depth error in one voxel'
 P_GATE = 35  # side gate: largest contradiction of y's side by the reference SDF, metres (0: off)
 P_INV_VOXEL = 36  # 1 / voxel_size, 1/metre
 P_VAR_CORR = 37  # per-frame noise shared by a voxel's pixels, metres^2 (see observe_row)
-N_PARAMS = 38
+P_PIXELS = 38  # full-resolution pixels per (super-)pixel of the image observed, k^2 (1: none)
+P_AGGREGATE = 39  # largest super-pixel side, in voxel footprints (0: every pixel on its own)
+N_PARAMS = 40
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -142,12 +153,16 @@ _NDA = ti.types.ndarray
 
 
 @ti.func
-def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys: ti.template(),
+def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.template(),
+                 block_keys: ti.template(),
                  block_table: ti.template(), ref: ti.template(), stride: ti.i32, m: ti.i32,
                  mf: ti.i32, counts: ti.template(), scratch: ti.template(), blocks: ti.template(),
-                 sink: ti.template(), mode: ti.template()):
-    """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5): each pixel first counts
-    its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` with int64 atomics, or
+                 sink: ti.template(), mode: ti.template(), part: ti.i32):
+    """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5) at the pixels where
+    ``mask`` is 1 (``depth`` is the frame or one level of its super-pixel pyramid, ``prm`` that
+    level's parameters; :func:`superpixel_level`): each pixel first counts
+    its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` (copy ``part``, this
+    thread's: plain int64 adds), or
     (``to_rows``) writes every sample to ``sink = (row_idx, row_a, row_y, row_w, row_z,
     row_status)`` at row ``(pixel slot) * (mf + m + 1) + (j + mf)``, pixel slot ``vs *
     ceil(W / stride) + u / stride``. The row's counters go to ``counts[vs]``; ``scratch``
@@ -166,11 +181,12 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
     n_valid, n_used, n_acc_row, n_drop, n_sat, n_fb, n_gate = 0, 0, 0, 0, 0, 0, 0
     for jj in range(mf + m + 1):
         blocks[vs, jj, 0] = 1 << 30  # no block has this coordinate: empty cache
+    pixels = ti.cast(prm[P_PIXELS], ti.i32)
     for us in range(n_us):
         u = us * stride
         d = depth[v, u]
-        if d > 0:
-            n_valid += 1
+        if d > 0 and mask[v, u] == 1:
+            n_valid += pixels
             nf = pixel_normal(depth, prm, u, v)
             n_C = ti.Vector([nf[0], nf[1], nf[2]])
             ray = ray_C(prm, u, v)
@@ -183,7 +199,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
             # a frame's pixels over one voxel share its pose / calibration error (variance
             # P_VAR_CORR): their mean has variance sd^2 / rho + corr, so each of the rho
             # pixels counts as sd^2 + rho corr (rho = the voxel's footprint in pixels, >= 1)
-            rho = ti.max(1.0, (prm[P_K] / (D * prm[P_INV_VOXEL] * ti.cast(stride, ti.f64))) ** 2)
+            # (prm[P_K] is this level's fx = fx / k: rho counts full-resolution pixels)
+            rho = ti.max(1.0, (prm[P_K] / (D * prm[P_INV_VOXEL] * ti.cast(stride, ti.f64))) ** 2
+                         * prm[P_PIXELS])
             var_pixel = sd * sd + prm[P_VAR_EXTRA] + prm[P_VAR_CORR]  # one pixel's noise
             inv_var = 1.0 / (var_pixel + (rho - 1.0) * prm[P_VAR_CORR])
             m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
@@ -233,7 +251,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
             if ti.static(mode == MODE_ROWS):
                 todo = 1  # every sample gets a row, accepted or not
             if todo > 0:
-                w = inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64), prm[P_SHARE])
+                # a super-pixel is the mean of its k^2 pixels: it carries their information
+                w = prm[P_PIXELS] * inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64),
+                                                     prm[P_SHARE])
                 ws = w * scale
                 for j in range(-mf, m + 1):
                     delta = ti.cast(j, ti.f64) * spacing
@@ -273,32 +293,38 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
                                 r -= a[c] * ti.cast(mu[idx[c]], ti.f64)
                                 p += a[c] * a[c] * ti.cast(var[idx[c]], ti.f64)
                             share = w / inv_var
-                            var_k = var_pixel
+                            # the residual of a super-pixel is that of the mean of its k^2
+                            # pixels: their shared part P_VAR_CORR does not average down
+                            var_k = (sd * sd + prm[P_VAR_EXTRA]) / prm[P_PIXELS] + prm[P_VAR_CORR]
                             inv_h2 = prm[P_INV_VOXEL] * prm[P_INV_VOXEL]
                             r2 = ti.min(r * r, MISFIT_CAP * var_k) * inv_h2
                             v2 = ti.max(var_k - p, 0.1 * var_k) * inv_h2
                             for c in ti.static(range(8)):
                                 sa = a[c] * share * MISFIT_SCALE
-                                ti.atomic_add(R_acc[idx[c], 0], fixed_point(sa * r2))
-                                ti.atomic_add(R_acc[idx[c], 1], fixed_point(sa * v2))
-                                ti.atomic_add(R_acc[idx[c], 2], fixed_point(sa))
+                                # this thread's copy: plain adds (`+=` would be atomic)
+                                i = idx[c]
+                                R_acc[part, i, 0] = R_acc[part, i, 0] + fixed_point(sa * r2)
+                                R_acc[part, i, 1] = R_acc[part, i, 1] + fixed_point(sa * v2)
+                                R_acc[part, i, 2] = R_acc[part, i, 2] + fixed_point(sa)
                     elif accepted:
                         S_acc, h_acc = ti.static(sink[0], sink[1])
                         for ca in ti.static(range(8)):
                             wa = ws * a[ca]
                             for cb in ti.static(range(ca, 8)):
-                                old = ti.atomic_add(S_acc[idx[ca], ti.static(column(ca, cb))],
-                                                    fixed_point(wa * a[cb]))
+                                col = ti.static(column(ca, cb))
+                                old = S_acc[part, idx[ca], col]  # this thread's copy: no atomic
+                                S_acc[part, idx[ca], col] = old + fixed_point(wa * a[cb])
                                 if old > ti.i64(SATURATION):
                                     n_sat += 1
-                            old = ti.atomic_add(h_acc[idx[ca]], fixed_point(wa * y))
+                            old = h_acc[part, idx[ca]]
+                            h_acc[part, idx[ca]] = old + fixed_point(wa * y)
                             if old > ti.i64(SATURATION) or old < -ti.i64(SATURATION):
                                 n_sat += 1
             if n_acc > 0:
-                n_used += 1
+                n_used += pixels
                 n_acc_row += n_acc
                 if nf[3] > 0:
-                    n_fb += 1
+                    n_fb += pixels
     counts[vs, C_VALID] = n_valid
     counts[vs, C_USED] = n_used
     counts[vs, C_ACCEPTED] = n_acc_row
@@ -309,23 +335,31 @@ def observe_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), block_keys
 
 
 @ti.kernel
-def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim=1),
+def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
+                  prm: _NDA(dtype=ti.f64, ndim=1),
                    block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                    ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
-                   S_acc: _NDA(dtype=ti.i64, ndim=2), h_acc: _NDA(dtype=ti.i64, ndim=1),
+                   S_acc: _NDA(dtype=ti.i64, ndim=3), h_acc: _NDA(dtype=ti.i64, ndim=2),
                    counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
                    blocks: _NDA(dtype=ti.i32, ndim=3)):
     """One frame into the accumulators ``S_acc``/``h_acc``, parallel over strided pixel rows
-    (:func:`observe_row`). Determinism: integer atomics only; the accumulated values are
+    (:func:`observe_row`), each thread into its own part of the accumulators (rows ``part,
+    part + n_parts, ...``). Determinism: integer adds only; the accumulated values are
     bitwise reproducible whatever the thread schedule."""
-    ti.loop_config(block_dim=4)  # rows differ in valid pixels: small chunks balance threads
-    for vs in range((depth.shape[0] + stride - 1) // stride):
-        observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
-                     blocks, (S_acc, h_acc), MODE_ACCUMULATE)
+    n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, S_acc.shape[0]
+    for task in range(n_parts * PART_GRAIN):  # see PART_GRAIN
+        if task % PART_GRAIN != 0:
+            continue
+        part = task // PART_GRAIN  # part p takes rows p, p + n_parts, ... in order
+        for q in range((n_rows - part + n_parts - 1) // n_parts):
+            observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
+                        stride, m, mf, counts, scratch, blocks, (S_acc, h_acc), MODE_ACCUMULATE,
+                        part)
 
 
 @ti.kernel
-def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim=1),
+def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
+                 prm: _NDA(dtype=ti.f64, ndim=1),
                   block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                   ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                   counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
@@ -338,8 +372,55 @@ def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim
     written by one thread, no atomics)."""
     ti.loop_config(block_dim=4)
     for vs in range((depth.shape[0] + stride - 1) // stride):
-        observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
-                     blocks, (row_idx, row_a, row_y, row_w, row_z, row_status), MODE_ROWS)
+        observe_row(vs, depth, mask, prm, block_keys, block_table, ref, stride, m, mf, counts,
+                    scratch, blocks, (row_idx, row_a, row_y, row_w, row_z, row_status), MODE_ROWS,
+                    0)
+
+
+@ti.kernel
+def superpixel_mean(fine: _NDA(dtype=ti.f32, ndim=2), coarse: _NDA(dtype=ti.f32, ndim=2),
+                    prm: _NDA(dtype=ti.f64, ndim=1), k: ti.i32):
+    """Level l of a frame's super-pixel pyramid (``k = 2^l`` full-resolution pixels a side)
+    from level l - 1 (``prm``: the frame's full-resolution parameters): each pixel is the mean
+    depth of its 2x2 children where all four are valid and lie on one surface, i.e. their
+    depths differ by at most ``k tan(normal_max_slope) mean / fx`` (a surface inclined by at
+    most the normal's slope limit over the k pixels they span; a larger jump is an occlusion
+    edge), else 0. Deterministic (one thread per output pixel)."""
+    reach = ti.cast(prm[P_JUMP] / prm[P_K], ti.f32) * ti.cast(k, ti.f32)
+    for by, bx in ti.ndrange(coarse.shape[0], coarse.shape[1]):
+        d0, d1 = fine[2 * by, 2 * bx], fine[2 * by, 2 * bx + 1]
+        d2, d3 = fine[2 * by + 1, 2 * bx], fine[2 * by + 1, 2 * bx + 1]
+        out = 0.0
+        if d0 > 0 and d1 > 0 and d2 > 0 and d3 > 0:
+            mean = (d0 + d1 + d2 + d3) * 0.25
+            spread = ti.max(ti.max(d0, d1), ti.max(d2, d3)) - ti.min(ti.min(d0, d1), ti.min(d2, d3))
+            if spread <= reach * mean:
+                out = mean
+        coarse[by, bx] = out
+
+
+@ti.kernel
+def superpixel_level(depth: _NDA(dtype=ti.f32, ndim=2), parent: _NDA(dtype=ti.i8, ndim=2),
+                     has_parent: ti.i32, mask: _NDA(dtype=ti.i8, ndim=2),
+                     prm: _NDA(dtype=ti.f64, ndim=1), k: ti.i32):
+    """Which pixels of pyramid level l (``depth``, ``k = 2^l``) are observed at this level,
+    coarsest level first: ``mask`` 2 where a coarser level took the pixel (its ``parent``
+    pixel's mask is not 0), else 1 where it is valid and (l > 0) spans at most
+    ``prm[P_AGGREGATE]`` voxel footprints (``k <= aggregate * f * voxel / depth``, f the
+    smaller focal length), else 0 (left to the finer levels). Deterministic."""
+    f = ti.min(prm[P_K], prm[P_K + 1])
+    foot = prm[P_AGGREGATE] * f / prm[P_INV_VOXEL]  # k * depth must not exceed this
+    for v, u in ti.ndrange(depth.shape[0], depth.shape[1]):
+        m = 0
+        covered = 0
+        if has_parent and v // 2 < parent.shape[0] and u // 2 < parent.shape[1]:
+            covered = ti.cast(parent[v // 2, u // 2] != 0, ti.i32)
+        d = ti.cast(depth[v, u], ti.f64)
+        if covered:
+            m = 2
+        elif d > 0 and (k == 1 or ti.cast(k, ti.f64) * d <= foot):
+            m = 1
+        mask[v, u] = ti.cast(m, ti.i8)
 
 
 @ti.kernel
@@ -363,12 +444,21 @@ def estimate_normals(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
         fallback[v, u] = fb
 
 
+@ti.func
+def part_sum(acc: ti.template(), i: ti.i32, c: ti.i32) -> ti.i64:
+    """Entry ``(i, c)`` summed over the accumulator's parts (integers: exact)."""
+    total = ti.i64(0)
+    for p in range(acc.shape[0]):
+        total += acc[p, i, c]
+    return total
+
+
 @ti.kernel
 def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
               block_table: ti.types.ndarray(dtype=ti.i32, ndim=2),
               ijk: ti.types.ndarray(dtype=ti.i32, ndim=2),
-              S_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
-              h_acc: ti.types.ndarray(dtype=ti.i64, ndim=1),
+              S_acc: ti.types.ndarray(dtype=ti.i64, ndim=3),
+              h_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
               inv_scale: ti.f64,
               S: ti.types.ndarray(dtype=ti.f32, ndim=2),
               h: ti.types.ndarray(dtype=ti.f32, ndim=1)):
@@ -377,7 +467,7 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
     (0 if not in the band), for o < 13; ``h = h_acc / scale``. Deterministic (pure reads)."""
     for i in range(S.shape[0]):
         for o in ti.static(range(CENTRE, 27)):
-            S[i, o] = ti.cast(ti.cast(S_acc[i, o - CENTRE], ti.f64) * inv_scale, ti.f32)
+            S[i, o] = ti.cast(ti.cast(part_sum(S_acc, i, o - CENTRE), ti.f64) * inv_scale, ti.f32)
         v = ti.Vector([ijk[i, 0], ijk[i, 1], ijk[i, 2]])
         b = ti.Vector([v[0] // BLOCK, v[1] // BLOCK, v[2] // BLOCK])
         row = block_row(block_keys, b[0], b[1], b[2])  # >= 0: voxel i is in the band
@@ -392,20 +482,24 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
                 j = band_index(block_keys, block_table, v[0] + d[0], v[1] + d[1], v[2] + d[2])
             val = 0.0
             if j >= 0:
-                val = ti.cast(ti.cast(S_acc[j, CENTRE - o], ti.f64) * inv_scale, ti.f32)
+                val = ti.cast(ti.cast(part_sum(S_acc, j, CENTRE - o), ti.f64) * inv_scale, ti.f32)
             S[i, o] = val
-        h[i] = ti.cast(ti.cast(h_acc[i], ti.f64) * inv_scale, ti.f32)
+        h_i = ti.i64(0)
+        for p in range(h_acc.shape[0]):
+            h_i += h_acc[p, i]
+        h[i] = ti.cast(ti.cast(h_i, ti.f64) * inv_scale, ti.f32)
 
 
 # -- Python side ------------------------------------------------------------------------------
 
 
 @ti.kernel
-def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim=1),
+def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
+                 prm: _NDA(dtype=ti.f64, ndim=1),
                  block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                  ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                  mu: _NDA(dtype=ti.f32, ndim=1), var: _NDA(dtype=ti.f32, ndim=1),
-                 R_acc: _NDA(dtype=ti.i64, ndim=2),
+                 R_acc: _NDA(dtype=ti.i64, ndim=3),
                  counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
                  blocks: _NDA(dtype=ti.i32, ndim=3)):
     """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 3): per voxel,
@@ -413,9 +507,14 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), prm: _NDA(dtype=ti.f64, ndim
     (both in voxel^2; ``p_k = sum_c a_c^2 var_c``, at most 0.9 sigma_k^2, the part of the noise
     the fit absorbs, from the posterior variances ``var``) and ``sum_k a_k s_k``, in units of 1 / MISFIT_SCALE, over the accepted samples k
     (the same samples, rows and weights as :func:`observe_frame`): ``r_k = y_k - a_k . mu``,
-    ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its pixel. Integer atomics:
+    ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its pixel. Integer adds into per-thread parts:
     deterministic."""
-    ti.loop_config(block_dim=4)
-    for vs in range((depth.shape[0] + stride - 1) // stride):
-        observe_row(vs, depth, prm, block_keys, block_table, ref, stride, m, mf, counts, scratch,
-                     blocks, (mu, var, R_acc), MODE_MISFIT)
+    n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, R_acc.shape[0]
+    for task in range(n_parts * PART_GRAIN):  # one task per part (see PART_GRAIN)
+        if task % PART_GRAIN != 0:
+            continue
+        part = task // PART_GRAIN
+        for q in range((n_rows - part + n_parts - 1) // n_parts):
+            observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
+                        stride, m, mf, counts, scratch, blocks, (mu, var, R_acc), MODE_MISFIT,
+                        part)

@@ -76,17 +76,32 @@ an unrolled corner loop (no gain).
 """
 
 import math
+import os
 
 import numpy as np
 import taichi as ti
 
 from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B, P_COS_MIN,
-                       P_GATE, P_INV_VOXEL, P_JUMP, P_VAR_CORR, P_K, P_M, P_O, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
-                       P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, estimate_normals,
-                       MISFIT_SCALE, finalize_stencil, misfit_frame, observe_frame,
-                       observe_rows)
+                       MAX_PARTS, P_AGGREGATE, P_GATE, P_INV_VOXEL, P_JUMP, P_K, P_M, P_O, P_PIXELS, P_R,
+                       P_RADIUS, P_SCALE, P_SHARE, P_SPACING, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
+                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE, estimate_normals,
+                       finalize_stencil, misfit_frame, observe_frame, observe_rows,
+                       superpixel_level, superpixel_mean)
 from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table
+
+def accumulator_parts() -> int:
+    """Copies of the accumulators: one per CPU thread of the Taichi runtime, at most
+    MAX_PARTS (their integer sum cannot overflow)."""
+    from taichi.lang import impl
+
+    threads = int(getattr(impl.current_cfg(), "cpu_max_num_threads", 0) or os.cpu_count() or 1)
+    return max(1, min(MAX_PARTS, threads))
+
+
+#: Largest super-pixel: 2^MAX_LEVEL = 16 pixels a side.
+MAX_LEVEL = 4
+
 
 def sample_count(trunc_m: float, spacing_m: float) -> int:
     """Samples per pixel, 2 m + 1 with m = floor(trunc / spacing) (1e-6 tolerance for round
@@ -130,8 +145,9 @@ class Observer:
             neighbouring depths still count as one surface in the normal estimate, degrees.
 
     Raises ValueError for inconsistent inputs (the weight needs a floor: one of ``depth_a_m``,
-    ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 136
-    bytes per band voxel (int64 accumulators, ijk, the gate's float32 reference).
+    ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 120
+    bytes per band voxel per CPU thread (int64 accumulators, one copy per thread, at most
+    MAX_PARTS) plus 16 (ijk, the gate's float32 reference).
     """
 
     def __init__(self, block_keys: np.ndarray, block_table: np.ndarray, n_voxels: int,
@@ -140,7 +156,8 @@ class Observer:
                  cos_min: float = 0.3, sigma_pose_m: float = 0.0, sigma_model_m: float = 0.001,
                  normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0,
                  count_once: str, front_m: float, gate_m: float,
-                 reference: np.ndarray | None = None, sigma_corr_m: float = 0.0):
+                 reference: np.ndarray | None = None, sigma_corr_m: float = 0.0,
+                 aggregate: float = 0.0):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
@@ -188,6 +205,9 @@ class Observer:
         if not (math.isfinite(sigma_corr_m) and sigma_corr_m >= 0):
             raise ValueError(f"Observer: sigma_corr_m = {sigma_corr_m} must be >= 0")
         self.sigma_corr_m = float(sigma_corr_m)
+        if not (math.isfinite(aggregate) and aggregate >= 0):
+            raise ValueError(f"Observer: aggregate = {aggregate} must be >= 0 (0: off)")
+        self.aggregate = float(aggregate)
         self.normal_radius_px = int(normal_radius_px)
         self.normal_max_slope_deg = float(normal_max_slope_deg)
         self.m = sample_count(self.trunc_m, self.spacing_m) // 2
@@ -212,8 +232,10 @@ class Observer:
         self.w_max = 1.0 / var_floor
         self.fixed_scale = 2.0 ** math.floor(FRACTION_BITS - math.log2(self.w_max))
         n = max(self.n_voxels, 1)
-        self.S_acc = ti.ndarray(ti.i64, shape=(n, N_HALF))
-        self.h_acc = ti.ndarray(ti.i64, shape=(n,))
+        # one copy of the accumulators per thread (the kernels add without atomics)
+        self.parts = accumulator_parts()
+        self.S_acc = ti.ndarray(ti.i64, shape=(self.parts, n, N_HALF))
+        self.h_acc = ti.ndarray(ti.i64, shape=(self.parts, n))
         self._params = np.zeros(N_PARAMS, np.float64)
         self._scratch_buf = None
         self._R_acc = None  # misfit sums (N, 3), allocated by the first misfit()
@@ -266,7 +288,56 @@ class Observer:
         prm[P_GATE] = self.gate_m
         prm[P_INV_VOXEL] = 1.0 / self.voxel_size
         prm[P_VAR_CORR] = self.sigma_corr_m ** 2
+        prm[P_PIXELS] = 1.0
+        prm[P_AGGREGATE] = self.aggregate
         return depth, prm
+
+    def _levels(self, depth: np.ndarray, prm: np.ndarray, stride: int) -> list:
+        """The frame as ``[(image, mask, params, k)]``, one entry per level of its super-pixel
+        pyramid, coarsest first: level l observes the pixels of ``image`` (the frame averaged
+        over k x k blocks, ``k = 2^l``) where ``mask`` is 1, each as the mean of its k^2 pixels
+        with their information (module docstring, "Super-pixels"). Without aggregation (or at
+        ``stride`` > 1) one level: the frame itself, every valid pixel."""
+        valid = depth > 0
+        levels = 0
+        if self.aggregate > 0 and stride == 1 and valid.any():
+            f = min(prm[P_K], prm[P_K + 1])
+            foot = self.aggregate * f * self.voxel_size / float(depth[valid].min())
+            levels = int(math.floor(math.log2(foot))) if foot >= 2 else 0
+            levels = max(0, min(levels, MAX_LEVEL, int(math.log2(min(depth.shape)))))
+        if levels == 0:
+            return [(depth, valid.view(np.int8), prm, 1)]
+        images = [depth]
+        for lv in range(1, levels + 1):
+            fine = images[-1]
+            coarse = np.empty((fine.shape[0] // 2, fine.shape[1] // 2), np.float32)
+            superpixel_mean(fine, coarse, prm, 1 << lv)
+            images.append(coarse)
+        out = []
+        parent, has_parent = np.zeros((1, 1), np.int8), 0
+        for lv in range(levels, -1, -1):
+            k = 1 << lv
+            mask = np.empty(images[lv].shape, np.int8)
+            superpixel_level(images[lv], parent, has_parent, mask, prm, k)
+            parent, has_parent = mask, 1
+            out.append((images[lv], mask, self._level_params(prm, k), k))
+        return out
+
+    @staticmethod
+    def _level_params(prm: np.ndarray, k: int) -> np.ndarray:
+        """The parameters of pyramid level ``k`` (pixels a side): intrinsics of the k x k
+        blocks (block u covers pixels k u .. k u + k - 1, centre k u + (k - 1) / 2)."""
+        if k == 1:
+            return prm
+        out = prm.copy()
+        fx, fy, cx, cy = prm[P_K:P_K + 4]
+        fx, fy, cx, cy = fx / k, fy / k, (cx - (k - 1) / 2) / k, (cy - (k - 1) / 2) / k
+        out[P_K:P_K + 4] = fx, fy, cx, cy
+        R_WC = prm[P_R:P_R + 9].reshape(3, 3)
+        K_inv = np.array([[1.0 / fx, 0.0, -cx / fx], [0.0, 1.0 / fy, -cy / fy], [0.0, 0.0, 1.0]])
+        out[P_M:P_M + 9] = (R_WC @ K_inv * prm[P_INV_VOXEL]).ravel()
+        out[P_PIXELS] = float(k * k)
+        return out
 
     def _scratch(self, n_rows: int) -> tuple:
         """Per-row scratch arrays of the frame kernel (see observe_frame), reused."""
@@ -295,13 +366,15 @@ class Observer:
         """
         stride = self._check_stride(stride)
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
-        n_vs = (depth.shape[0] + stride - 1) // stride
-        counts = np.zeros((n_vs, N_COUNTS), np.int64)
-        if self.n_voxels:
-            observe_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride,
-                           self.m, self.mf,
-                           self.S_acc, self.h_acc, counts, *self._scratch(n_vs))
-        frame = counts.sum(axis=0)
+        frame = np.zeros(N_COUNTS, np.int64)
+        for image, mask, prm_l, _ in self._levels(depth, prm, stride):
+            n_vs = (image.shape[0] + stride - 1) // stride
+            counts = np.zeros((n_vs, N_COUNTS), np.int64)
+            if self.n_voxels:
+                observe_frame(image, mask, prm_l, self.block_keys, self.block_table,
+                              self.reference, stride, self.m, self.mf, self.S_acc, self.h_acc,
+                              counts, *self._scratch(n_vs))
+            frame += counts.sum(axis=0)
         self.counts += frame
         self.frames += 1
         return dict(zip(COUNT_NAMES, frame.tolist()))
@@ -320,24 +393,31 @@ class Observer:
         """
         stride = self._check_stride(stride)
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
-        H, W = depth.shape
-        n_vs, n_us = (H + stride - 1) // stride, (W + stride - 1) // stride
+        W = depth.shape[1]
         n_s = self.mf + self.m + 1
-        R = n_vs * n_us * n_s
-        rows = (np.full((R, 8), -1, np.int32), np.zeros((R, 8)), np.zeros(R), np.zeros(R),
-                np.zeros(R), np.zeros(R, np.int32))
-        counts = np.zeros((n_vs, N_COUNTS), np.int64)
-        if self.n_voxels:
-            observe_rows(depth, prm, self.block_keys, self.block_table, self.reference, stride,
-                          self.m, self.mf, counts, *self._scratch(n_vs), *rows)
-        idx, a, y, w, z, status = rows
-        slot = np.arange(R) // n_s
-        pixel = (slot // n_us) * stride * W + (slot % n_us) * stride
-        ok = status == ROW_ACCEPTED
-        drop = status == ROW_DROPPED
-        return {"idx": idx[ok], "a": a[ok], "y": y[ok], "w": w[ok], "z": z[ok],
-                "pixel": pixel[ok], "dropped_pixel": pixel[drop], "dropped_z": z[drop],
-                "counts": dict(zip(COUNT_NAMES, counts.sum(axis=0).tolist()))}
+        parts, total = [], np.zeros(N_COUNTS, np.int64)
+        for image, mask, prm_l, k in self._levels(depth, prm, stride):
+            n_vs = (image.shape[0] + stride - 1) // stride
+            n_us = (image.shape[1] + stride - 1) // stride
+            R = n_vs * n_us * n_s
+            rows = (np.full((R, 8), -1, np.int32), np.zeros((R, 8)), np.zeros(R), np.zeros(R),
+                    np.zeros(R), np.zeros(R, np.int32))
+            counts = np.zeros((n_vs, N_COUNTS), np.int64)
+            if self.n_voxels:
+                observe_rows(image, mask, prm_l, self.block_keys, self.block_table,
+                             self.reference, stride, self.m, self.mf, counts,
+                             *self._scratch(n_vs), *rows)
+            total += counts.sum(axis=0)
+            idx, a, y, w, z, status = rows
+            slot = np.arange(R) // n_s
+            # a super-pixel's rows are reported at its first (top-left) pixel
+            pixel = (slot // n_us) * stride * k * W + (slot % n_us) * stride * k
+            ok, drop = status == ROW_ACCEPTED, status == ROW_DROPPED
+            parts.append((idx[ok], a[ok], y[ok], w[ok], z[ok], pixel[ok], pixel[drop], z[drop]))
+        cat = [np.concatenate(col) for col in zip(*parts)]
+        return {"idx": cat[0], "a": cat[1], "y": cat[2], "w": cat[3], "z": cat[4],
+                "pixel": cat[5], "dropped_pixel": cat[6], "dropped_z": cat[7],
+                "counts": dict(zip(COUNT_NAMES, total.tolist()))}
 
     def frame_normals(self, depth_m: np.ndarray, K: np.ndarray,
                       T_W_C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -363,13 +443,16 @@ class Observer:
             raise ValueError(f"mu {mu.shape} and var {var.shape} must have shape "
                              f"({self.n_voxels},)")
         if self._R_acc is None:
-            self._R_acc = ti.ndarray(ti.i64, shape=(max(self.n_voxels, 1), 3))
+            self._R_acc = ti.ndarray(ti.i64, shape=(self.parts, max(self.n_voxels, 1), 3))
             self._R_acc.fill(0)
-        n_vs = (depth.shape[0] + stride - 1) // stride
-        counts = np.zeros((n_vs, N_COUNTS), np.int64)
-        if self.n_voxels:
-            misfit_frame(depth, prm, self.block_keys, self.block_table, self.reference, stride,
-                         self.m, self.mf, mu, var, self._R_acc, counts, *self._scratch(n_vs))
+        if not self.n_voxels:
+            return
+        for image, mask, prm_l, _ in self._levels(depth, prm, stride):
+            n_vs = (image.shape[0] + stride - 1) // stride
+            counts = np.zeros((n_vs, N_COUNTS), np.int64)
+            misfit_frame(image, mask, prm_l, self.block_keys, self.block_table, self.reference,
+                         stride, self.m, self.mf, mu, var, self._R_acc, counts,
+                         *self._scratch(n_vs))
 
     def misfit_sums(self) -> np.ndarray:
         """(N, 3) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
@@ -379,7 +462,7 @@ class Observer:
         reaching the voxel and column 1 / column 2 what the model expects of it."""
         if self._R_acc is None or not self.n_voxels:
             return np.zeros((self.n_voxels, 3))
-        R = self._R_acc.to_numpy()[:self.n_voxels] / MISFIT_SCALE
+        R = self._R_acc.to_numpy().sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
         R[:, :2] *= self.voxel_size ** 2
         return R
 
@@ -390,7 +473,7 @@ class Observer:
         stencil (:meth:`finalize`). Exact (from the fixed-point sums)."""
         if not self.n_voxels:
             return np.zeros(0)
-        return self.S_acc.to_numpy()[:, 0] / self.fixed_scale
+        return self.S_acc.to_numpy()[:, :, 0].sum(axis=0) / self.fixed_scale
 
     def finalize(self) -> tuple[np.ndarray, np.ndarray, dict]:
         """The data term so far: ``S_data`` (N, 27) float32 (stencil of A^T W A, symmetric:

@@ -94,6 +94,16 @@ class ObservationConfig:
     pixels. That is where the surface errors are. report.json: ``solver.variance.local_noise``.
     """
 
+    aggregate: float = 1.0
+    """Super-pixels where a voxel spans many pixels (no unit; 0 = off): a k x k block of pixels
+    that lie on one surface is observed as one pixel at its mean depth carrying the information
+    of all k^2 (``k`` a power of two up to 16, at most ``aggregate`` voxel footprints ``f voxel
+    / depth`` pixels a side). Every valid pixel still counts, once; what the mean gives up is
+    where inside the block each ray met the surface, less than a voxel. The cost of the
+    observation pass then scales with the voxels seen rather than with the pixels: on 640x480
+    frames at 2 cm most blocks are 4x4 or 8x8. Where a voxel spans about a pixel or less (the
+    development suite) nothing changes. Measured in docs/measurements.md."""
+
     count_once: str = "voxel"
     """How a pixel's samples, which share one depth error, split its information ``1/sigma^2``:
     ``pixel`` gives each of its n samples ``1/n`` (the pixel counts once in all); ``voxel``
@@ -111,6 +121,7 @@ class ObservationConfig:
         check_range("observation.stride", self.stride, 1, 64)
         check_range("observation.spacing_voxels", self.spacing_voxels, 0.1, 10.0)
         check_range("observation.front", self.front, 1.0, 3.0)
+        check_range("observation.aggregate", self.aggregate, 0.0, 4.0)
         check_range("observation.gate", self.gate, 0.0, 10.0)
         check_range("observation.depth_a_m", self.depth_a_m, 0.0)
         check_range("observation.depth_b", self.depth_b, 0.0)
@@ -141,7 +152,8 @@ def make_observer(band, obs: ObservationConfig, voxel_size_m: float, trunc_m: fl
                     sigma_pose_m=obs.sigma_pose_m,
                     sigma_model_m=float(np.hypot(obs.sigma_model_m, independent)),
                     sigma_corr_m=corr, count_once=obs.count_once, front_m=obs.front * trunc_m,
-                    reference=band.reference, gate_m=obs.gate * trunc_m)
+                    reference=band.reference, gate_m=obs.gate * trunc_m,
+                    aggregate=obs.aggregate)
 
 
 def observe(observer, frames, stride: int):
