@@ -389,6 +389,19 @@ class CompactStencil:
         self.nbytes = self._D.nbytes
         self.build_seconds = time.perf_counter() - t0
 
+    def set_diagonal(self, diag: np.ndarray) -> None:
+        """Replace Q_ii by ``diag`` (N,) (float32; the off-diagonal entries are kept): the
+        layout of Q + D for a diagonal change D, e.g. the MAP's free-space passes, without a
+        rebuild (the stencil the products fall back to for non-finite x gets it too)."""
+        diag = np.asarray(diag, np.float32)
+        if diag.shape != (self.n,):
+            raise ValueError(f"diag must have shape ({self.n},), got {diag.shape}")
+        if not (np.isfinite(diag).all() and (diag > 0).all()):
+            raise ValueError("diag must be finite and positive")
+        self._D[1:self.n + 1] = diag  # slot 0 of U, voxel i at position i + 1
+        if not np.shares_memory(self._S, diag):
+            self._S[:, CENTRE] = diag  # the exact path's copy
+
     def apply_dot(self, P: np.ndarray, AP: np.ndarray) -> float:
         """AP = Q P for padded (N+1,) float32/float64 vectors (P[0] = 0, written AP[0] = 0);
         returns p·Ap (float64, deterministic). The solvers' product."""

@@ -160,7 +160,8 @@ def _product(ker: GatherKernels, op, compact, n: int, lanes: int):
 
 
 def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
-                dtype=np.float32, check: bool = True, far=None) -> tuple:
+                dtype=np.float32, check: bool = True, far=None,
+                compact: CompactStencil | None = None) -> tuple:
     """Solve ``Q X = B`` for K right-hand sides at once (Jacobi-preconditioned CG).
 
     Every column has its own alpha and beta; all columns advance in the same kernels each
@@ -201,7 +202,10 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
     dinv = 1.0 / S[:, CENTRE].astype(np.float64)
     X = np.empty(B.shape, dtype)
     # one right-hand side: the compact layout, built once for all iterations
-    compact = CompactStencil(S, nbr, far, check=False) if B.shape[1] == 1 else None
+    if B.shape[1] != 1:
+        compact = None
+    elif compact is None:
+        compact = CompactStencil(S, nbr, far, check=False)
     columns = []
     for a, b in column_blocks(B.shape[1]):
         ker = gather_kernels(b - a, dtype, far is not None)
@@ -215,7 +219,8 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
                    n_not_converged=n_bad, columns=columns)
 
 
-def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000, far=None) -> tuple:
+def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000, far=None,
+        compact: CompactStencil | None = None) -> tuple:
     """MAP solve ``Q mu = h`` by Jacobi-preconditioned CG (M = diag Q = S[:, 13]).
 
     Args:
@@ -228,6 +233,10 @@ def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000, far=None) ->
             relative error is at most cond(Q) * tol). The default 1e-6 is ~10x the float32
             rounding of the assembled S and h, so tighter targets refine nothing real.
         maxiter: iteration cap.
+        compact: the :class:`~kernels.compact.CompactStencil` of exactly this (S, nbr, far),
+            built (and checked) by the caller, e.g. once for several solves that change only
+            the diagonal (:meth:`~kernels.compact.CompactStencil.set_diagonal`); S and nbr are
+            then not checked again. Default: built here.
     Returns:
         ``(x, info)``: x (N,) float64 (the solver works in float64; casting to float32 for
         storage moves each value by at most half an ulp); info = dict(converged,
@@ -239,8 +248,14 @@ def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000, far=None) ->
         h = 0 returns x = 0 with relative_residual 0.
         Deterministic: the same inputs give bitwise identical x and info.
     """
-    S, nbr = check_stencil(S, nbr)
-    far = check_far(far, S)
+    if compact is None:
+        S, nbr = check_stencil(S, nbr)
+        far = check_far(far, S)
+    else:
+        S, nbr = stencil_arrays(S, nbr)
+        far = far_arrays(far, S.shape[0])
+        if compact.n != S.shape[0]:
+            raise ValueError(f"compact has {compact.n} rows, S {S.shape[0]}")
     n = S.shape[0]
     h = as_block(h, n, "h", np.float64)
     if h.ndim != 1:
@@ -249,5 +264,5 @@ def pcg(S, nbr, h, x0=None, tol: float = 1e-6, maxiter: int = 1000, far=None) ->
     if x0 is not None and x0.ndim != 1:
         raise ValueError(f"x0 must have shape ({n},), got {x0.shape}")
     X, info = pcg_batched(S, nbr, h[:, None], None if x0 is None else x0[:, None], tol,
-                          maxiter, np.float64, check=False, far=far)
+                          maxiter, np.float64, check=False, far=far, compact=compact)
     return X[:, 0], info["columns"][0]

@@ -56,14 +56,17 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
     ``free_space`` (``passes, anchored, free_voxels``), ``residual_history`` (the last solve's)
     and ``reason`` when PCG stopped early."""
+    from kernels.compact import CompactStencil
     from kernels.layout import CENTRE
     from kernels.pcg import pcg
 
     S, h = system.S, system.h
+    # one layout for every pass: the free-space anchors change only the diagonal
+    compact = CompactStencil(S, system.nbr, system.far)
 
     def solve(start):
         return pcg(S, system.nbr, h, start, tol=solver.tol, maxiter=solver.maxiter,
-                   far=system.far)
+                   far=system.far, compact=compact)
 
     mean, info = solve(x0)
     iterations, n_pass, n_free, n_anchored = info["iterations"], 0, 0, 0
@@ -79,6 +82,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
             active |= viol
             S[viol, CENTRE] += k
             h[viol] += k * band.tsdf[viol]
+            compact.set_diagonal(S[:, CENTRE])
             mean, info = solve(mean)
             iterations += info["iterations"]
         n_free, n_anchored = int(free_mask.sum()), int(active.sum())
