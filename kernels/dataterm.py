@@ -377,50 +377,85 @@ def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
                     0)
 
 
-@ti.kernel
-def superpixel_mean(fine: _NDA(dtype=ti.f32, ndim=2), coarse: _NDA(dtype=ti.f32, ndim=2),
-                    prm: _NDA(dtype=ti.f64, ndim=1), k: ti.i32):
-    """Level l of a frame's super-pixel pyramid (``k = 2^l`` full-resolution pixels a side)
-    from level l - 1 (``prm``: the frame's full-resolution parameters): each pixel is the mean
-    depth of its 2x2 children where all four are valid and lie on one surface, i.e. their
-    depths differ by at most ``k tan(normal_max_slope) mean / fx`` (a surface inclined by at
-    most the normal's slope limit over the k pixels they span; a larger jump is an occlusion
-    edge), else 0. Deterministic (one thread per output pixel)."""
-    reach = ti.cast(prm[P_JUMP] / prm[P_K], ti.f32) * ti.cast(k, ti.f32)
-    for by, bx in ti.ndrange(coarse.shape[0], coarse.shape[1]):
-        d0, d1 = fine[2 * by, 2 * bx], fine[2 * by, 2 * bx + 1]
-        d2, d3 = fine[2 * by + 1, 2 * bx], fine[2 * by + 1, 2 * bx + 1]
-        out = 0.0
-        if d0 > 0 and d1 > 0 and d2 > 0 and d3 > 0:
-            mean = (d0 + d1 + d2 + d3) * 0.25
-            spread = ti.max(ti.max(d0, d1), ti.max(d2, d3)) - ti.min(ti.min(d0, d1), ti.min(d2, d3))
-            if spread <= reach * mean:
-                out = mean
-        coarse[by, bx] = out
-
-
-@ti.kernel
-def superpixel_level(depth: _NDA(dtype=ti.f32, ndim=2), parent: _NDA(dtype=ti.i8, ndim=2),
-                     has_parent: ti.i32, mask: _NDA(dtype=ti.i8, ndim=2),
-                     prm: _NDA(dtype=ti.f64, ndim=1), k: ti.i32):
-    """Which pixels of pyramid level l (``depth``, ``k = 2^l``) are observed at this level,
-    coarsest level first: ``mask`` 2 where a coarser level took the pixel (its ``parent``
-    pixel's mask is not 0), else 1 where it is valid and (l > 0) spans at most
-    ``prm[P_AGGREGATE]`` voxel footprints (``k <= aggregate * f * voxel / depth``, f the
-    smaller focal length), else 0 (left to the finer levels). Deterministic."""
-    f = ti.min(prm[P_K], prm[P_K + 1])
-    foot = prm[P_AGGREGATE] * f / prm[P_INV_VOXEL]  # k * depth must not exceed this
-    for v, u in ti.ndrange(depth.shape[0], depth.shape[1]):
-        m = 0
-        covered = 0
-        if has_parent and v // 2 < parent.shape[0] and u // 2 < parent.shape[1]:
-            covered = ti.cast(parent[v // 2, u // 2] != 0, ti.i32)
+@ti.func
+def superpixel_fits(depth: ti.template(), v: ti.i32, u: ti.i32, k: ti.i32, foot: ti.f64) -> ti.i32:
+    """1 if pixel (v, u) of the pyramid level of side ``k`` exists, is valid and spans at most
+    the voxel footprints ``foot`` allows (``k * depth <= foot``; any valid pixel at k = 1)."""
+    ok = 0
+    if v < depth.shape[0] and u < depth.shape[1]:
         d = ti.cast(depth[v, u], ti.f64)
-        if covered:
-            m = 2
-        elif d > 0 and (k == 1 or ti.cast(k, ti.f64) * d <= foot):
-            m = 1
-        mask[v, u] = ti.cast(m, ti.i8)
+        ok = ti.cast(d > 0 and (k == 1 or ti.cast(k, ti.f64) * d <= foot), ti.i32)
+    return ok
+
+
+@ti.kernel
+def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2),
+                d2: _NDA(dtype=ti.f32, ndim=2), d3: _NDA(dtype=ti.f32, ndim=2),
+                d4: _NDA(dtype=ti.f32, ndim=2), m0: _NDA(dtype=ti.i8, ndim=2),
+                m1: _NDA(dtype=ti.i8, ndim=2), m2: _NDA(dtype=ti.i8, ndim=2),
+                m3: _NDA(dtype=ti.i8, ndim=2), m4: _NDA(dtype=ti.i8, ndim=2),
+                prm: _NDA(dtype=ti.f64, ndim=1), levels: ti.i32):
+    """A frame's super-pixel pyramid in one launch (``prm``: its full-resolution parameters).
+
+    Levels l = 1..``levels`` (``d1..d4``, blocks of ``k = 2^l`` pixels a side, the image
+    size divided by k and rounded down; the levels above ``levels`` are not used): the mean depth of each k x k block where all its pixels are valid and lie
+    on one surface, i.e. their depths differ by at most ``k tan(normal_max_slope) mean / fx``
+    (a surface inclined by at most the normal's slope limit; a larger jump is an occlusion
+    edge), else 0.
+
+    Masks ``m0..m4`` (level 0 is the frame): 1 where the level observes the pixel (it is valid
+    and spans at most ``prm[P_AGGREGATE]`` voxel footprints, ``k <= aggregate * f * voxel /
+    depth`` with f the smaller focal length, and no coarser block containing it does), 2
+    where a coarser block observes it, 0 elsewhere. Every valid pixel of the frame is then
+    observed exactly once. Deterministic (one thread per output pixel)."""
+    reach = ti.cast(prm[P_JUMP] / prm[P_K], ti.f32)
+    foot = prm[P_AGGREGATE] * ti.min(prm[P_K], prm[P_K + 1]) / prm[P_INV_VOXEL]
+    for lv in ti.static(range(1, 5)):
+        dl = ti.static((d1, d2, d3, d4)[lv - 1])
+        k = ti.static(1 << lv)
+        for by, bx in ti.ndrange(dl.shape[0], dl.shape[1]):
+            if lv <= levels:
+                lo, hi, total = ti.f32(1e30), ti.f32(0.0), ti.f32(0.0)
+                for dv in range(k):
+                    for du in range(k):
+                        d = depth[by * k + dv, bx * k + du]
+                        lo, hi, total = ti.min(lo, d), ti.max(hi, d), total + d
+                mean = total / ti.static(float(k * k))
+                out = ti.f32(0.0)
+                if lo > 0 and hi - lo <= reach * ti.static(float(k)) * mean:
+                    out = mean
+                dl[by, bx] = out
+    for lv in ti.static(range(5)):
+        ml = ti.static((m0, m1, m2, m3, m4)[lv])
+        dl = ti.static((depth, d1, d2, d3, d4)[lv])
+        for v, u in ti.ndrange(ml.shape[0], ml.shape[1]):
+            if lv <= levels:
+                covered = 0
+                for up in ti.static(range(lv + 1, 5)):
+                    if up <= levels:
+                        da = ti.static((depth, d1, d2, d3, d4)[up])
+                        covered |= superpixel_fits(da, v >> ti.static(up - lv),
+                                                   u >> ti.static(up - lv), 1 << up, foot)
+                m = 2
+                if not covered:
+                    m = superpixel_fits(dl, v, u, 1 << lv, foot)
+                ml[v, u] = ti.cast(m, ti.i8)
+
+
+@ti.kernel
+def window_sums(nbr: _NDA(dtype=ti.i32, ndim=2), sums: _NDA(dtype=ti.f64, ndim=2),
+                out: _NDA(dtype=ti.f64, ndim=2)):
+    """``out[i] = sum over the 27 stencil neighbours j of voxel i (nbr[i, o] >= 0) of
+    sums[j]``, the columns of ``sums`` (N, C) separately, offsets in order 0..26.
+    Deterministic (one thread per voxel, a fixed order)."""
+    for i in range(nbr.shape[0]):
+        for c in range(sums.shape[1]):
+            total = ti.f64(0.0)
+            for o in ti.static(range(27)):
+                j = nbr[i, o]
+                if j >= 0:
+                    total += sums[j, c]
+            out[i, c] = total
 
 
 @ti.kernel

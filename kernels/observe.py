@@ -86,7 +86,7 @@ from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P
                        P_RADIUS, P_SCALE, P_SHARE, P_SPACING, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
                        ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE, estimate_normals,
                        finalize_stencil, misfit_frame, observe_frame, observe_rows,
-                       superpixel_level, superpixel_mean)
+                       superpixels, window_sums)
 from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table
 
@@ -307,21 +307,14 @@ class Observer:
             levels = max(0, min(levels, MAX_LEVEL, int(math.log2(min(depth.shape)))))
         if levels == 0:
             return [(depth, valid.view(np.int8), prm, 1)]
-        images = [depth]
-        for lv in range(1, levels + 1):
-            fine = images[-1]
-            coarse = np.empty((fine.shape[0] // 2, fine.shape[1] // 2), np.float32)
-            superpixel_mean(fine, coarse, prm, 1 << lv)
-            images.append(coarse)
-        out = []
-        parent, has_parent = np.zeros((1, 1), np.int8), 0
-        for lv in range(levels, -1, -1):
-            k = 1 << lv
-            mask = np.empty(images[lv].shape, np.int8)
-            superpixel_level(images[lv], parent, has_parent, mask, prm, k)
-            parent, has_parent = mask, 1
-            out.append((images[lv], mask, self._level_params(prm, k), k))
-        return out
+        H, W = depth.shape
+        images = [depth] + [np.zeros((H >> lv, W >> lv) if lv <= levels else (1, 1), np.float32)
+                            for lv in range(1, MAX_LEVEL + 1)]
+        masks = [np.zeros((H >> lv, W >> lv) if lv <= levels else (1, 1), np.int8)
+                 for lv in range(MAX_LEVEL + 1)]
+        superpixels(*images, *masks, prm, levels)
+        return [(images[lv], masks[lv], self._level_params(prm, 1 << lv), 1 << lv)
+                for lv in range(levels, -1, -1)]
 
     @staticmethod
     def _level_params(prm: np.ndarray, k: int) -> np.ndarray:
@@ -465,6 +458,18 @@ class Observer:
         R = self._R_acc.to_numpy().sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
         R[:, :2] *= self.voxel_size ** 2
         return R
+
+    def misfit_window(self, nbr: np.ndarray) -> np.ndarray:
+        """:meth:`misfit_sums` summed over each voxel's 27-point window (N, 3) float64, the
+        voxels ``nbr`` (N, 27) int32 names (-1: outside the band). One kernel; deterministic."""
+        sums = np.ascontiguousarray(self.misfit_sums(), np.float64)
+        nbr = np.ascontiguousarray(nbr, np.int32)
+        if nbr.shape != (self.n_voxels, 27):
+            raise ValueError(f"nbr must have shape ({self.n_voxels}, 27), got {nbr.shape}")
+        out = np.zeros((self.n_voxels, 3))
+        if self.n_voxels:
+            window_sums(nbr, sums, out)
+        return out
 
     # -- result ------------------------------------------------------------------------------
     def diagonal(self) -> np.ndarray:

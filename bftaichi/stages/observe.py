@@ -191,10 +191,7 @@ def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.nd
     """
     for frame in frames:
         observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, var, stride=stride)
-    sums = observer.misfit_sums()
-    valid = nbr >= 0
-    idx = np.where(valid, nbr, 0)
-    window = np.where(valid[..., None], sums[idx], 0.0).sum(axis=1)  # (N, 3) over 27 voxels
+    window = observer.misfit_window(nbr)  # (N, 3) over the 27 voxels around each
     ok = window[:, 2] >= 1.0
     scale = np.ones(len(mean), np.float64)
     b2 = np.zeros(len(mean), np.float64)
