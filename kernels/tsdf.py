@@ -57,6 +57,7 @@ from taichi.lang import impl
 
 from .funcs import floor_i32
 from .layout import BLOCK, BLOCK_VOXELS
+from .stencil import first_chunk, virtual_iterations
 MAX_VOLUMES = 1 << 12  # volumes per Taichi program (ids are not reused)
 L1 = 64  # first spatial pointer level: cells per axis
 L2 = 16  # second spatial pointer level: blocks per axis in one first-level cell
@@ -258,18 +259,24 @@ def _integrate_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     blocks is deterministic (its order is not); each voxel is updated by the one thread of its
     block, no float atomics: the voxel values are bitwise reproducible."""
     counts[C_LISTED] = 0
-    ti.loop_config(block_dim=4)  # rows differ in valid pixels: small chunks balance threads
-    for vs in range((depth.shape[0] + stride - 1) // stride):
-        _activate_row(vs, depth, prm, stride, frame, vid, slot_map, stamp_map, cache, counts,
-                      frame_list)
+    # both loops deal their rows / blocks out over at least TASK_MIN iterations per thread
+    # (kernels.stencil.first_chunk): a loop over fewer runs on one thread
+    n_rows = (depth.shape[0] + stride - 1) // stride
+    n_virtual = ti.max(n_rows, ti.static(virtual_iterations()))
+    for t in range(n_virtual):
+        for vs in range(first_chunk(t, n_rows, n_virtual), first_chunk(t + 1, n_rows, n_virtual)):
+            _activate_row(vs, depth, prm, stride, frame, vid, slot_map, stamp_map, cache,
+                          counts, frame_list)
     n_blocks = ti.cast(counts[C_LISTED], ti.i32)
     if (n_blocks > frame_list.shape[0]
             or counts[C_SLOTS] * BLOCK_VOXELS > ti.cast(tsdf.shape[0], ti.i64)):
         n_blocks = 0
-    ti.loop_config(block_dim=4)
-    for n in range(n_blocks):
-        _integrate_block(n, depth, rgb, prm, frame_list, tsdf, weight, color, slot_block,
-                         counts, with_color)
+    n_virtual_b = ti.max(n_blocks, ti.static(virtual_iterations()))
+    for t in range(n_virtual_b):
+        for n in range(first_chunk(t, n_blocks, n_virtual_b),
+                       first_chunk(t + 1, n_blocks, n_virtual_b)):
+            _integrate_block(n, depth, rgb, prm, frame_list, tsdf, weight, color, slot_block,
+                             counts, with_color)
 
 
 @ti.kernel
