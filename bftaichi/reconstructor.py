@@ -35,7 +35,8 @@ from .geometry import check_K, check_pose
 from .posterior import Posterior
 from .stages.band import build_band
 from .stages.integrate import TSDFVolume
-from .stages.observe import estimate_extra_noise, local_misfit, make_observer, observe
+from .stages.observe import (FramePicks, estimate_extra_noise, local_misfit, make_observer,
+                             observe)
 from .stages.prior import add_prior
 from .stages.solve import solve_map
 from .stages.variance import estimate_variance
@@ -144,8 +145,10 @@ class Reconstructor:
                                                 probes=variance)
         lap("variance")
         if o.local_noise:  # noise part scaled, model error b^2 (correlated) added
-            scale, b2, misfit = local_misfit(observer, frame_iter(frames, "misfit") if frame_iter
-                                             else frames, mean, var, band.nbr, o.stride)
+            picked = FramePicks(frames, o.misfit_frames)
+            scale, b2, misfit = local_misfit(observer, frame_iter(picked, "misfit") if frame_iter
+                                             else picked, mean, var, band.nbr, o.stride)
+            misfit["frames"] = len(picked)
             var = var * scale + b2
             if variance:
                 from kernels.probes import FACE_PLUS

@@ -45,6 +45,20 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
    (``c <= c'``, which is ``o >= 13``) is accumulated; :meth:`Observer.finalize` fills
    ``S[i, o] = S[nbr(i, o), 26 - o]`` for ``o < 13``, so the stencil is symmetric bit for bit.
 
+Super-pixels (``aggregate`` > 0, at stride 1): where a voxel spans many pixels, a k x k block
+of pixels (``k = 2^l``, l = 1..MAX_LEVEL) whose depths are all valid and lie on one surface (they
+differ by at most ``k tan(normal_max_slope) D / fx``) is observed as one pixel of the block
+image (intrinsics ``fx / k``, ``(cx - (k - 1) / 2) / k``) at the block's mean depth: its
+normal from the neighbouring blocks, its samples and rows as above, and the information of its
+k^2 pixels (``w`` times k^2; each still counts ``sigma^2 + rho sigma_corr^2`` with ``rho`` in
+full-resolution pixels). The coarsest block that spans at most ``aggregate`` voxel footprints
+(``k <= aggregate f voxel / D``) takes its pixels; the rest go to finer levels, down to single
+pixels at edges and where a voxel spans about a pixel or less. Every valid pixel is observed
+exactly once (:func:`kernels.dataterm.superpixels`). What the block gives up is where inside it
+each ray met the surface, within a voxel; a noiseless box is still fitted exactly
+(tests/test_observe.py). The misfit pass sees the block's residual against the mean's variance
+``(sigma_depth^2 + sigma_pose^2 + sigma_model^2) / k^2 + sigma_corr^2``.
+
 Fixed point (determinism without float atomics): every contribution ``x`` is added to int64
 accumulators as ``round(x * scale)`` (round half away from zero), ``scale = 2^FRACTION_BITS /
 w_max`` rounded down to a power of two, ``w_max = 1 / ((a cos_min)^2 + sigma_pose^2 +
@@ -52,19 +66,28 @@ sigma_model^2)``
 the largest possible weight (sigma_depth >= a cos_min; a frame's sigma_pose may not go below the
 Observer's). A contribution to ``S`` is at most ``w_max`` (``w <= w_max``,
 ``a_c a_c' <= 1``), i.e. at most 2^32 units; its rounding error is at most 2^-33 w_max, far below
-the float32 resolution of any entry it lands in. An entry may grow to ``SATURATION = 2^62``
-units, i.e. 2^30 (10^9) maximal contributions, before an add to it is counted as *saturated*;
-increments are at most 2^32 units (2^32 |y| / metre for ``h``), so an entry can only wrap
-around at 2^63 after being counted: a saturation count of 0 guarantees exact sums. Integer
-addition is associative, so the accumulated arrays are bitwise identical whatever the thread
-schedule (and whatever the order of the frames).
+the float32 resolution of any entry it lands in. Each thread adds into its own copy of the
+accumulators (``parts``: one per CPU thread, at most MAX_PARTS = 4), without atomics; the copies
+are summed when read. An entry of a copy may grow to ``SATURATION = 2^60`` units, i.e. 2^28
+(2.7 10^8) maximal contributions, before an add to it is counted as *saturated*; increments are
+at most 2^32 units (2^32 |y| / metre for ``h``), so neither a copy nor the sum of four can
+wrap around at 2^63 before an add is counted: a saturation count of 0 guarantees exact sums.
+Integer addition is associative, so the accumulated arrays are bitwise identical whatever the
+thread schedule and thread count (and whatever the order of the frames).
 
-Layout of the accumulators: ``S_acc`` (N, 14) int64, column ``o - 13`` for ``o = 13..26``;
-``h_acc`` (N,) int64. Per-row counters (no atomics): ``counts`` (rows, N_COUNTS) int64.
+Layout of the accumulators: ``S_acc`` (parts, N, 14) int64, column ``o - 13`` for ``o =
+13..26``; ``h_acc`` (parts, N) int64. Per-row counters: ``counts`` (rows, N_COUNTS) int64.
 
-Cost (one frame = one launch, parallel over pixel rows): per pixel a normal (5 depth reads),
-per sample a cell lookup and, if accepted, 36 + 8 int64 atomic adds (the upper half of
-``a a^T`` and ``a y``). The lookup reads the block table through a per-row cache of the 8
+Cost (one launch per pyramid level, each thread taking every parts-th pixel row): per pixel a
+normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 adds (the upper
+half of ``a a^T`` and ``a y``). Measured on redkitchen frames at 2 cm (tools/bench_pipeline.py
+has the current figures): int64 atomics cost ~20 cycles each, so the per-thread copies took
+the pass from ~520 to ~150 ns per sample at stride 1 (the row loop had also been running on
+one thread: Taichi's CPU backend gives loops of fewer than 512 iterations to one thread), and
+super-pixels cut the samples ~12x (a super-pixel sample costs ~2x a pixel's: its neighbours'
+cells are not in the cache). Measured and not kept: a dense block grid instead of the binary
+search over block keys behind the per-row block cache (no gain beyond the noise). The
+figures below are from before these changes. The lookup reads the block table through a per-row cache of the 8
 blocks around sample j's block (one cache per sample index j: sample j of the next pixels of a
 row stays in the same blocks for many pixels), so binary searches are rare. Measured on a
 sphere band of 200k voxels (1 cm voxels, tau = 2 voxels: 5 samples per pixel), 640x480 frames

@@ -44,7 +44,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "rgbd" / "7scenes-redkitchen"
 DEPTH_MAX_M = 6.0  # fuse's default scene.depth_max_m
-TRUNC_VOXELS = 4  # fuse's TSDF truncation: alpha (2) x tau (2 voxels)
+TRUNC_VOXELS = 4.0  # fuse's TSDF truncation: alpha (2) x tau (2 voxels)
 TARGETS = {"observe/tsdf": 1.5, "map+variance/tsdf": 1.0, "fuse/open3d": 3.0,
            "memory fuse/open3d": 2.0}
 
