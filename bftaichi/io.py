@@ -65,9 +65,16 @@ def write_json(path: str | os.PathLike, obj) -> None:
 
 
 def write_npz(path: str | os.PathLike, **arrays) -> None:
-    """``np.savez_compressed`` into memory, then an atomic write."""
+    """A compressed ``.npz`` (what ``np.savez_compressed`` writes, ``np.load`` reads) built in
+    memory, then an atomic write. Deflate level 1: about 1.5x faster than savez_compressed's
+    default level for a file 2 % larger (float32 fields compress little either way)."""
+    import zipfile
+
     buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name, value in arrays.items():
+            with zf.open(name + ".npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
     atomic_write_bytes(path, buf.getvalue())
 
 
@@ -96,22 +103,30 @@ def write_mesh_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndar
     face["vertex_indices"] = faces
     ply = PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")],
                   text=False, byte_order="<")
-    buf = io.BytesIO()
-    ply.write(buf)
-    atomic_write_bytes(path, buf.getvalue())
+    # plyfile's header; the data as the packed arrays plyfile writes (it writes list
+    # properties one row at a time in Python: ~5 s for a million faces)
+    packed = np.empty(len(faces), dtype=[("n", "u1"), ("vertex_indices", "<i4", (3,))])
+    packed["n"], packed["vertex_indices"] = 3, faces
+    atomic_write_bytes(path, b"".join([ply.header.encode("ascii"), b"\n",
+                                       vert.astype(vert.dtype.newbyteorder("<")).tobytes(),
+                                       packed.tobytes()]))
 
 
 def read_mesh_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Read a PLY written by :func:`write_mesh_ply`: (vertices, faces, extra vertex properties)."""
     from plyfile import PlyData
 
-    ply = PlyData.read(str(path))
+    try:  # triangles (what write_mesh_ply writes): plyfile's vectorised path
+        ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3}})
+    except Exception:  # noqa: BLE001 - other lists or a damaged file: the general reader
+        ply = PlyData.read(str(path))
     v = ply["vertex"].data
     vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
     extra = {n: np.asarray(v[n]) for n in v.dtype.names if n not in ("x", "y", "z")}
     faces = np.zeros((0, 3), np.int32)
     if "face" in ply and len(ply["face"].data):
-        faces = np.stack(ply["face"].data["vertex_indices"]).astype(np.int32)
+        idx = ply["face"].data["vertex_indices"]  # (M, 3), or rows of objects (general path)
+        faces = (np.stack(idx) if idx.dtype == object else np.asarray(idx)).astype(np.int32)
     return vertices, faces, extra
 
 
