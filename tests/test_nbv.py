@@ -29,9 +29,9 @@ SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 3 ring views on one side,
     # variance corrections measured after the solve (local_noise) are not part of Q
     "observation.local_noise=false",
     # every pixel on its own: on this tiny scene (80x60, a voxel spans 3.7 pixels) the
-    # posterior from 2x2 super-pixels is more correlated, and the diagonal-only local update
-    # ranks the candidates worse against the exact reduction (Spearman 0.81, 0.95 without
-    # super-pixels); measured in issue 16, for the planner issue to take up
+    # posterior from 2x2 super-pixels (aggregate=1) is more correlated, and the diagonal-only
+    # local update ranks the candidates worse against the exact reduction (Spearman 0.81,
+    # 0.95 without super-pixels); measured in issue 16, for the planner issue to take up
     "observation.aggregate=0",
 )
 

@@ -141,10 +141,10 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     from kernels.pcg import pcg
     from kernels.stencil import apply_Q
 
-    # every pixel on its own (observation.aggregate=0): with 2x2 super-pixels (a voxel spans
-    # 3.4 pixels here) 4 of the 7071 free voxels, 4 voxels out at the band's edge and seen
-    # once or twice, already end below half a voxel without the constraint, which this test
-    # needs to start from
+    # every pixel on its own (observation.aggregate=0): with 2x2 super-pixels of up to one
+    # voxel footprint (aggregate=1; a voxel spans 3.4 pixels here) 4 of the 7071 free voxels,
+    # 4 voxels out at the band's edge and seen once or twice, already end below half a voxel
+    # without the constraint, which this test needs to start from
     cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false",
                              "observation.aggregate=0"])
     recon, post = solved(cfg, open_frames(cfg), variance=False)
