@@ -231,25 +231,38 @@ class FramePicks:
         return self.frames[int(self.picks[i])]
 
 
-def _head_on(depth: np.ndarray, K: np.ndarray, cos_min: float = 0.8) -> np.ndarray:
+def _head_on(depth: np.ndarray, K: np.ndarray, cos_min: float = 0.8,
+             stride: int = 1) -> np.ndarray:
     """(H, W) bool: valid pixels whose surface faces the camera within ``acos(cos_min)``,
     from the normal of the back-projected depth's central differences (both neighbours valid
-    along u and v)."""
+    along u and v). Only every ``stride``-th pixel in u and v is tested (the others are
+    False): the pixels the noise fit casts."""
     h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
-    P = depth[..., None].astype(np.float64) * ray
     ok = np.zeros((h, w), bool)
-    tu = P[1:-1, 2:] - P[1:-1, :-2]
-    tv = P[2:, 1:-1] - P[:-2, 1:-1]
+    vs, us = np.arange(0, h, stride), np.arange(0, w, stride)
+    vs, us = vs[(vs >= 1) & (vs <= h - 2)], us[(us >= 1) & (us <= w - 2)]
+    if not (len(vs) and len(us)):
+        return ok
+    v, u = np.meshgrid(vs, us, indexing="ij")
+
+    def ray(vv, uu):
+        vv, uu = vv.astype(np.float64), uu.astype(np.float64)
+        return np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1],
+                         np.ones_like(uu)], -1)
+
+    def point(vv, uu):
+        return depth[vv, uu][..., None].astype(np.float64) * ray(vv, uu)
+
+    tu = point(v, u + 1) - point(v, u - 1)
+    tv = point(v + 1, u) - point(v - 1, u)
     n = np.cross(tu, tv)
-    r = ray[1:-1, 1:-1]
+    r = ray(v, u)
     cos = np.abs((n * r).sum(-1)) / np.maximum(np.linalg.norm(n, axis=-1) *
                                                  np.linalg.norm(r, axis=-1), 1e-30)
     valid = depth > 0
-    inner = (valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1]
-             & valid[1:-1, 1:-1])
-    ok[1:-1, 1:-1] = inner & (cos >= cos_min)
+    inner = (valid[v, u + 1] & valid[v, u - 1] & valid[v + 1, u] & valid[v - 1, u]
+             & valid[v, u])
+    ok[v, u] = inner & (cos >= cos_min)
     return ok
 
 
@@ -292,7 +305,7 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
         z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
                           f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=stride)
         D = np.asarray(f.depth_m, np.float64)
-        both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64))
+        both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=stride)
         res = np.where(both, z - D, 0.0)
         both &= np.abs(res) < bootstrap_trunc_m
         r_all.append(np.abs(res[both]))
