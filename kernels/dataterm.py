@@ -16,16 +16,11 @@ import taichi as ti
 from .funcs import block_row, block_rows, cell_corners, corner, floor_i32, trilinear
 from .layout import BLOCK, CENTRE
 from .lookup import band_index
+from .stencil import first_chunk, virtual_iterations
 
 FRACTION_BITS = 32  # one maximal-weight contribution = 2^32 fixed-point units
 SATURATION = 1 << 60  # |entry| beyond this (before an add) is counted as saturated
 MAX_PARTS = 4  # accumulator copies (one per thread): their sum stays below 2^63
-#: Taichi's CPU backend hands a parallel loop to its threads in chunks of at least 512
-#: iterations (fewer run on one thread, whatever ``block_dim`` says). The accumulating kernels
-#: loop over ``n_parts * PART_GRAIN`` tasks of which only every PART_GRAIN-th works, on one part
-#: of the accumulators: each part is written by exactly one task (no race, whatever the
-#: chunking) and the working tasks fall into different chunks, i.e. threads.
-PART_GRAIN = 1024
 N_HALF = 27 - CENTRE  # accumulated stencil columns: offsets o = 13..26
 
 # Per-frame parameters, one float64 vector (a single cheap kernel argument):
@@ -347,14 +342,16 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
     part + n_parts, ...``). Determinism: integer adds only; the accumulated values are
     bitwise reproducible whatever the thread schedule."""
     n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, S_acc.shape[0]
-    for task in range(n_parts * PART_GRAIN):  # see PART_GRAIN
-        if task % PART_GRAIN != 0:
-            continue
-        part = task // PART_GRAIN  # part p takes rows p, p + n_parts, ... in order
-        for q in range((n_rows - part + n_parts - 1) // n_parts):
-            observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
-                        stride, m, mf, counts, scratch, blocks, (S_acc, h_acc), MODE_ACCUMULATE,
-                        part)
+    # the parts dealt out like the stencil kernels' chunks (kernels.stencil.first_chunk): each
+    # part goes to exactly one virtual iteration (no race) and the parts to different threads
+    n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))
+    for t in range(n_virtual):
+        for part in range(first_chunk(t, n_parts, n_virtual),
+                          first_chunk(t + 1, n_parts, n_virtual)):
+            for q in range((n_rows - part + n_parts - 1) // n_parts):  # rows p, p + n_parts, ...
+                observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
+                            stride, m, mf, counts, scratch, blocks, (S_acc, h_acc),
+                            MODE_ACCUMULATE, part)
 
 
 @ti.kernel
@@ -545,11 +542,11 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
     ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its pixel. Integer adds into per-thread parts:
     deterministic."""
     n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, R_acc.shape[0]
-    for task in range(n_parts * PART_GRAIN):  # one task per part (see PART_GRAIN)
-        if task % PART_GRAIN != 0:
-            continue
-        part = task // PART_GRAIN
-        for q in range((n_rows - part + n_parts - 1) // n_parts):
-            observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
-                        stride, m, mf, counts, scratch, blocks, (mu, var, R_acc), MODE_MISFIT,
-                        part)
+    n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))  # as in observe_frame
+    for t in range(n_virtual):
+        for part in range(first_chunk(t, n_parts, n_virtual),
+                          first_chunk(t + 1, n_parts, n_virtual)):
+            for q in range((n_rows - part + n_parts - 1) // n_parts):
+                observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
+                            stride, m, mf, counts, scratch, blocks, (mu, var, R_acc),
+                            MODE_MISFIT, part)

@@ -114,12 +114,19 @@ from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table
 
 def accumulator_parts() -> int:
-    """Copies of the accumulators: one per CPU thread of the Taichi runtime, at most
-    MAX_PARTS (their integer sum cannot overflow)."""
+    """Copies of the accumulators: one per CPU thread of the Taichi runtime (of the machine,
+    before Taichi is initialised), at most MAX_PARTS (their integer sum cannot overflow)."""
     from taichi.lang import impl
 
-    threads = int(getattr(impl.current_cfg(), "cpu_max_num_threads", 0) or os.cpu_count() or 1)
-    return max(1, min(MAX_PARTS, threads))
+    threads = 0
+    if impl.get_runtime().prog is not None:  # before ti.init: as many as the CPU has
+        threads = int(getattr(impl.current_cfg(), "cpu_max_num_threads", 0) or 0)
+    return max(1, min(MAX_PARTS, threads or os.cpu_count() or 1))
+
+
+def _pinhole_inverse(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """K^-1 of pinhole intrinsics, (3, 3) float64."""
+    return np.array([[1.0 / fx, 0.0, -cx / fx], [0.0, 1.0 / fy, -cy / fy], [0.0, 0.0, 1.0]])
 
 
 #: Largest super-pixel: 2^MAX_LEVEL = 16 pixels a side.
@@ -293,7 +300,7 @@ class Observer:
             raise ValueError(f"sigma_pose_m = {sp} of a frame must be at least the Observer's "
                              f"sigma_pose_m = {self.sigma_pose_m}")
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-        K_inv = np.array([[1.0 / fx, 0.0, -cx / fx], [0.0, 1.0 / fy, -cy / fy], [0.0, 0.0, 1.0]])
+        K_inv = _pinhole_inverse(fx, fy, cx, cy)
         R_WC, t_WC = T[:3, :3], T[:3, 3]
         a, b, z0, cos_min = self.depth_model
         prm = self._params
@@ -350,7 +357,7 @@ class Observer:
         fx, fy, cx, cy = fx / k, fy / k, (cx - (k - 1) / 2) / k, (cy - (k - 1) / 2) / k
         out[P_K:P_K + 4] = fx, fy, cx, cy
         R_WC = prm[P_R:P_R + 9].reshape(3, 3)
-        K_inv = np.array([[1.0 / fx, 0.0, -cx / fx], [0.0, 1.0 / fy, -cy / fy], [0.0, 0.0, 1.0]])
+        K_inv = _pinhole_inverse(fx, fy, cx, cy)
         out[P_M:P_M + 9] = (R_WC @ K_inv * prm[P_INV_VOXEL]).ravel()
         out[P_PIXELS] = float(k * k)
         return out

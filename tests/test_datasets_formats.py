@@ -2,7 +2,7 @@
 
 One small scene (the tabletop, 4 views, 64x48, no noise) is rendered once and written by each test
 in each format's own conventions (its depth scale, float16 for CO3D, quaternions and separate
-timestamps for TUM, ``seq-XX/`` for 7-Scenes, NDC cameras for CO3D, T_C_W for the folder format,
+timestamps for TUM, ``seq-01/``-style folders for 7-Scenes, NDC cameras for CO3D, T_C_W for the folder format,
 ...). Loading any of them must give the rendered depth (within the format's quantisation), poses
 and K, and fusing any of them the same mesh as the 7-Scenes copy written by ``bftaichi synth``.
 """

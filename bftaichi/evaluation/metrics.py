@@ -52,7 +52,7 @@ def load_mesh(path: str | os.PathLike):
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
     # trimesh's format parsers raise many exception types (ValueError, IndexError, KeyError,
-    # NotImplementedError for unknown formats, struct.error, ...) on a malformed file.
+    # NotImplementedError for an unknown format, struct.error) on a malformed file.
     except Exception as e:  # noqa: BLE001 - re-raised as DataError naming the file
         raise DataError(f"cannot read mesh file {path}: {type(e).__name__}: {e}") from e
     if not isinstance(mesh, trimesh.Trimesh):

@@ -46,8 +46,8 @@ class SevenScenesDataset(Dataset):
     """
 
     format = "7scenes"
-    looks_for = ("frame-XXXXXX.depth.png + frame-XXXXXX.pose.txt [+ camera-intrinsics.txt], "
-                 "or seq-XX/ folders of them")
+    looks_for = ("frame-<6 digits>.depth.png + frame-<6 digits>.pose.txt "
+                 "[+ camera-intrinsics.txt], or seq-<2 digits>/ folders of them")
     default_depth_scale = 1000.0
     INVALID_CODES = (0, 65535)
     """Raw depth values that mean "no measurement" (Kinect v1 as stored by 7-Scenes)."""

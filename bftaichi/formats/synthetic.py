@@ -443,8 +443,8 @@ def write_7scenes(dataset: SyntheticDataset, out_dir, progress: bool = False) ->
 
     Files (each written atomically):
 
-    - ``frame-XXXXXX.depth.png``: uint16 depth in millimetres (rounded), 0 = invalid;
-    - ``frame-XXXXXX.pose.txt``: 4x4 ``T_W_C`` (metres, OpenCV camera), 15 significant digits;
+    - ``frame-000000.depth.png`` (6-digit frame number): uint16 depth in millimetres (rounded), 0 = invalid;
+    - ``frame-000000.pose.txt``: 4x4 ``T_W_C`` (metres, OpenCV camera), 15 significant digits;
     - ``camera-intrinsics.txt``: 3x3 K;
     - ``gt_mesh.ply``: the ground-truth mesh (binary PLY, :func:`bftaichi.io.write_mesh_ply`);
     - ``scene.json``: width, height, n_frames, depth limits and the SyntheticConfig (provenance).

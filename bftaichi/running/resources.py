@@ -14,13 +14,13 @@ The memory model and its calibration are documented at :func:`estimate_memory`.
 from __future__ import annotations
 
 import math
-import os
 import time
 from contextlib import contextmanager
 
 import numpy as np
 
 from kernels.layout import block_key_np as _keys
+from kernels.observe import accumulator_parts
 from kernels.layout import block_key_steps as _block_steps
 
 from ..errors import BftaichiError
@@ -266,12 +266,6 @@ BAND_FILL = 1.0
 on both sides of the surface, one dilation layer each side; kernels/band.py)."""
 
 
-def accumulator_copies() -> int:
-    """Copies of the observation accumulators (kernels.observe.accumulator_parts): one per CPU
-    thread, at most 4."""
-    return max(1, min(4, os.cpu_count() or 1))
-
-
 def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: float,
                  band_blocks: float, mesh_vertices: float, chunk: float) -> dict[str, float]:
     """Bytes above :data:`BASE_BYTES` that each stage holds at its peak (persistent arrays of
@@ -297,7 +291,7 @@ def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: flo
     # observe: the Observer's 120 B per voxel per thread (S_acc (14,) i64 and h_acc i64, one
     # copy per thread, at most 4) and 16 B (ijk, reference f32); finalize adds S (27,) f32
     # and h (112 B) plus its scratch
-    obs = 120 * accumulator_copies() + 16
+    obs = 120 * accumulator_parts() + 16
     out["observe"] = persist + band + obs * N + 112 * N
     post = band + obs * N + 112 * N + 24 * N  # + prior's b0, h, the MAP mean
     # MAP: the compact layout (64 B) and its build temporaries (~250 B), five float64 vectors
