@@ -294,13 +294,11 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     calibrated)."""
     from kernels.raycast import raycast_depth
 
-    n = len(frames)
-    picks = np.unique(np.linspace(0, n - 1, min(n_frames, n)).round().astype(int)) if n else []
+    picks = FramePicks(frames, n_frames)
     observed = band.observed.astype(np.uint8)
     r_all, s_all = [], []
     lag_sum, lag_n = 0.0, 0
-    for i in picks:
-        f = frames[int(i)]
+    for f in picks:
         h, w = f.depth_m.shape
         z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
                           f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=stride)
