@@ -11,7 +11,9 @@ Compiled kernels are kept in Taichi's offline cache (``~/.cache/taichi`` unless
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 
 from .errors import BftaichiError
 
@@ -46,8 +48,32 @@ def init(arch: str = "cpu", *, debug: bool = False, offline_cache: bool = True,
                   default_fp=ti.f32, default_ip=ti.i32, random_seed=0, log_level=ti.WARN)
     if num_threads is not None:
         kwargs["cpu_max_num_threads"] = int(num_threads)
-    ti.init(**kwargs)
+    with _stdout_to_stderr():  # Taichi prints "[Taichi] Starting on arch=..." on stdout
+        ti.init(**kwargs)
     _state["arch"] = arch
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """Send what is printed on stdout (by Python or by Taichi's C++ runtime) to stderr: a
+    command's stdout carries its results only (``-q``: nothing), and an unwritable stdout
+    does not stop the start-up."""
+    try:
+        sys.stdout.flush()
+    except (AttributeError, OSError, ValueError):
+        pass
+    try:
+        saved = os.dup(1)
+        os.dup2(2, 1)
+    except OSError:  # no file descriptor 1 or 2: the Python-level redirect still holds
+        saved = None
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            yield
+    finally:
+        if saved is not None:
+            os.dup2(saved, 1)
+            os.close(saved)
 
 
 def is_initialized() -> bool:

@@ -1,7 +1,8 @@
 """The ``bftaichi`` command line. Commands stay thin: parse, call the library, print.
 
 Errors the user can fix (bad file, key or value) print ``error: ...`` and exit with code 2;
-Ctrl-C exits with 130. No traceback unless ``BFTAICHI_DEBUG=1``.
+Ctrl-C exits with 130, SIGTERM with 143, SIGHUP with 129 (:mod:`bftaichi.running.signals`).
+No traceback unless ``BFTAICHI_DEBUG=1``.
 """
 
 from __future__ import annotations
@@ -352,26 +353,32 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verb
         extra.append(f"nbv.n_candidates={n_candidates}")
     if radius is not None:
         extra.append(f"nbv.radius_m={radius}")
-    cfg = load_config(out / "config.toml", extra)
-    post = Posterior.load(out / "band.npz")
-    frames = open_frames(cfg)
-    backend.init(cfg.run.arch)
     from tqdm import tqdm
+
+    from .running import folder
 
     def bar(it):
         return tqdm(it, desc="nbv", unit="view", leave=False, disable=None if not quiet else True)
 
-    report_path = out / "report.json"
-    report = None
-    if report_path.exists():
-        try:
-            report = _json.loads(report_path.read_text())
-        except ValueError:
-            raise DataError(f"{report_path} is not valid JSON") from None
-    result = rank_run(post, cfg, frames, out, progress=bar)
-    if report is not None:
-        report["nbv"] = nbv_summary(result)
-        write_json(report_path, report)
+    # a writer: no run may replace the posterior while it is ranked, and nbv.json and the
+    # report's ranking are replaced together
+    with folder.hold(out):
+        cfg = load_config(out / "config.toml", extra)
+        post = Posterior.load(out / "band.npz")
+        frames = open_frames(cfg)
+        backend.init(cfg.run.arch)
+        report_path = out / "report.json"
+        report = None
+        if report_path.exists():
+            try:
+                report = _json.loads(report_path.read_text())
+            except ValueError:
+                raise DataError(f"{report_path} is not valid JSON") from None
+        with folder.staged(out) as staging:
+            result = rank_run(post, cfg, frames, staging, progress=bar)
+            if report is not None:
+                report["nbv"] = nbv_summary(result)
+                write_json(staging / "report.json", report)
     if not quiet:
         _print_ranking(result, len(result["candidates"]) if verbose else top)
         if verbose:
@@ -534,14 +541,16 @@ def eval_cmd(pred, gt, thresholds, samples, seed, as_json):
 
 def main(argv=None) -> int:
     """Console entry point: run the CLI, turn user errors into ``error: ...`` and exit code 2."""
+    from .running import folder, signals
+
+    args = sys.argv[1:] if argv is None else list(argv)
+    folder.command_line = " ".join(["bftaichi", *args])  # names a folder's lock holder
     try:
-        cli.main(args=argv, prog_name="bftaichi", standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("interrupted", err=True)
-        return 130
-    except KeyboardInterrupt:
-        click.echo("interrupted", err=True)
-        return 130
+        with signals.handled():  # SIGTERM, SIGHUP: as Ctrl-C
+            cli.main(args=args, prog_name="bftaichi", standalone_mode=False)
+    except (click.exceptions.Abort, KeyboardInterrupt) as e:
+        click.echo(signals.describe_interrupt(e), err=True)
+        return signals.exit_code(e)
     except click.ClickException as e:
         e.show()
         return e.exit_code

@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 
@@ -16,18 +17,42 @@ import numpy as np
 
 from .errors import BftaichiError
 
-__all__ = ["atomic_write_bytes", "write_json", "write_npz", "write_mesh_ply", "read_mesh_ply",
-           "prepare_out_dir", "ensure_out_dir"]
+__all__ = ["atomic_write_bytes", "writable_target", "write_json", "write_npz", "write_mesh_ply",
+           "read_mesh_ply", "prepare_out_dir", "ensure_out_dir"]
 
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)  # read once: temp files are created 0600, outputs get the usual 0666 & ~umask
 
 
+def writable_target(path: str | os.PathLike) -> Path:
+    """The file a write to ``path`` replaces: ``path`` itself, or the file a symlink at ``path``
+    points to (the write goes through the link, which stays). BftaichiError if that is not a
+    regular file (a device, FIFO, socket or folder): those are never replaced."""
+    path = Path(path)
+    target = Path(os.path.realpath(path)) if path.is_symlink() else path
+    try:
+        st = os.stat(target)
+    except FileNotFoundError:
+        return target
+    except OSError as e:
+        raise BftaichiError(f"cannot write {path}: {e.strerror or e}") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = ("a folder" if stat.S_ISDIR(st.st_mode) else "a device" if
+                stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "a FIFO" if
+                stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else
+                "not a regular file")
+        via = f" (the link {path} points to {target})" if target != path else ""
+        raise BftaichiError(f"cannot write {path}: it is {kind}{via}; bftaichi only replaces "
+                            "regular files, choose a file name")
+    return target
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` via a temp file in the same folder + rename (permissions as
-    a plain ``open`` would give)."""
-    path = Path(path)
+    a plain ``open`` would give). A symlink is written through; a device, FIFO, socket or
+    folder at ``path`` is refused (:func:`writable_target`)."""
+    path = writable_target(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as e:

@@ -114,8 +114,10 @@ class Posterior:
         the interpolated marginal bound as ``sigma`` (above the std of the SDF: by 27-35 %
         median on the spheres of tools/vertex_sigma_accuracy.py).
         Raises DataError naming the file."""
+        from .running.folder import reading
+
         try:
-            with np.load(path) as z:
+            with reading(Path(path).parent), np.load(path) as z:  # not while a run commits
                 data = {k: z[k] for k in z.files}
         except (OSError, ValueError) as e:
             raise DataError(f"{path}: cannot read the band ({e})") from None
@@ -150,14 +152,22 @@ class Posterior:
         """Write ``mesh.ply`` (:meth:`extract_mesh`, vertex ``sigma sigma_pos``) and ``band.npz``
         (:meth:`band_arrays`) into ``out_dir`` (DESIGN.md section 4), atomically; return the
         folder. :meth:`load` reads the band back."""
-        from .io import ensure_out_dir, write_mesh_ply, write_npz
+        from .io import ensure_out_dir
+        from .running.folder import staged
 
         out = ensure_out_dir(out_dir)
-        mesh = self.extract_mesh()
-        write_mesh_ply(out / "mesh.ply", mesh.vertices, mesh.faces,
-                       vertex_attrs=mesh_attrs(mesh))
-        write_npz(out / "band.npz", **self.band_arrays())
+        with staged(out) as staging:  # both files replaced together, one writer at a time
+            self._write(staging)
         return out
+
+    def _write(self, folder: Path) -> None:
+        """``mesh.ply`` and ``band.npz`` into ``folder``."""
+        from .io import write_mesh_ply, write_npz
+
+        mesh = self.extract_mesh()
+        write_mesh_ply(folder / "mesh.ply", mesh.vertices, mesh.faces,
+                       vertex_attrs=mesh_attrs(mesh))
+        write_npz(folder / "band.npz", **self.band_arrays())
 
     def extract_mesh(self) -> trimesh.Trimesh:
         """Step 7: marching cubes at ``mean = 0`` over cells whose 8 corners are band voxels

@@ -178,12 +178,14 @@ class Reconstructor:
         """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma`` and ``sigma_pos``) and
         ``band.npz`` into ``out_dir`` (created; files written atomically); return the folder."""
         from .io import ensure_out_dir, write_mesh_ply
+        from .running.folder import staged
 
         out = ensure_out_dir(out_dir)
         mesh = self.tsdf_mesh()
-        write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces)
-        if self.posterior is not None:
-            self.posterior.save(out)
+        with staged(out) as staging:  # the files replaced together, one writer at a time
+            write_mesh_ply(staging / "tsdf_mesh.ply", mesh.vertices, mesh.faces)
+            if self.posterior is not None:
+                self.posterior._write(staging)
         return out
 
 

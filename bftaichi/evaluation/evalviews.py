@@ -131,7 +131,18 @@ def _open3d_mesh(frames, cfg: Config):
 def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int = 1,
                    open3d: bool = True, overwrite: bool = False, progress: bool = True) -> dict:
     """Fuse every ``every``-th frame of ``cfg``'s scene into ``out_dir`` and score the held-out
-    frames (module docstring); write ``evalviews.json`` there and return its content."""
+    frames (module docstring); write ``evalviews.json`` there and return its content. Holds
+    the folder's writer lock throughout (bftaichi.running.folder)."""
+    from ..io import ensure_out_dir
+    from ..running.folder import hold
+
+    cfg.check()
+    with hold(ensure_out_dir(out_dir)):
+        return _evaluate_views(cfg, out_dir, every, held_out_stride, open3d, overwrite, progress)
+
+
+def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open3d: bool,
+                    overwrite: bool, progress: bool) -> dict:
     from kernels.raycast import raycast_depth
 
     from .. import backend
@@ -140,7 +151,6 @@ def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int
     from ..posterior import Posterior
     from ..formats.synthetic import DepthRenderer
 
-    cfg.check()
     if cfg.run.stages != "full":
         raise ConfigError("evalviews compares the posterior with the TSDF: run.stages must be "
                           "'full'")

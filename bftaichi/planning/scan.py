@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -163,10 +164,8 @@ def scan(cfg: Config, out_dir, policies=POLICIES, *, overwrite: bool = False,
     ``scan.json`` and ``scan.png`` into ``out_dir``; return the scan.json content.
 
     ``progress(policy, seed, record)`` is called after every step (for a progress display)."""
-    from .. import backend
-    from ..io import prepare_out_dir, write_json
-    from ..reconstructor import Reconstructor
-    from .nbv import region_of_interest
+    from ..io import ensure_out_dir, prepare_out_dir
+    from ..running.folder import hold, staged
 
     cfg.check()
     if cfg.scene.source != "synthetic":
@@ -178,7 +177,20 @@ def scan(cfg: Config, out_dir, policies=POLICIES, *, overwrite: bool = False,
                           f"{', '.join(POLICIES)}")
     t_start = time.perf_counter()
     scene = _Scene(cfg)
-    out = prepare_out_dir(out_dir, overwrite=overwrite, marker="scan.json")
+    out = ensure_out_dir(out_dir)
+    with hold(out):  # one writer; scan.json and scan.png replaced together
+        prepare_out_dir(out, overwrite=overwrite, marker="scan.json")
+        with staged(out) as staging:
+            return _scan(cfg, scene, policies, staging, progress, t_start)
+
+
+def _scan(cfg: Config, scene, policies, out: Path, progress, t_start: float) -> dict:
+    """:func:`scan`'s loop, writing into ``out`` (the staging folder)."""
+    from .. import backend
+    from ..io import write_json
+    from ..reconstructor import Reconstructor
+    from .nbv import region_of_interest
+
     backend.init(cfg.run.arch)
     thresholds = sorted(set(cfg.eval.thresholds_mm) | {10.0})
     # the region of interest, from the initial views' band (the same for every policy)

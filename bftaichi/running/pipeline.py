@@ -23,10 +23,11 @@ import trimesh
 from .. import backend
 from ..config import Config, parse_slice, save_config
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
-from ..io import prepare_out_dir, write_json, write_mesh_ply, write_npz
+from ..io import ensure_out_dir, prepare_out_dir, write_json, write_mesh_ply, write_npz
 from ..posterior import mesh_attrs
 from ..reconstructor import Reconstructor
 from ..version import __version__
+from . import folder
 
 __all__ = ["open_frames", "run", "load_gt_mesh"]
 
@@ -112,63 +113,28 @@ class _Timer:
 
 #: Everything a run writes into its folder (files and the plots/ folder).
 RUN_OUTPUTS = ("tsdf_mesh.ply", "mesh.ply", "band.npz", "report.json", "config.toml",
-               "preview.html", "nbv.json", "plots")
+               "preview.html", "nbv.json", "evalviews.json", "plots")
 
 
 class SolverError(BftaichiError):
     """A solve did not converge and ``run.strict`` asks not to write its result."""
 
 
-class _Staging:
-    """A run writes into ``OUT/.bftaichi-partial/`` and moves its outputs into ``OUT`` only
-    when every stage has finished (:meth:`commit`), so an interrupted or failed run leaves the
-    previous complete outputs, or none (:meth:`abort` deletes the staged files). The failure
-    is recorded: ``report.json`` with ``status`` ``failed`` / ``interrupted`` and the stage
-    when the folder held no run, else ``failed_run.json`` next to the previous run's files."""
+def _record_failure(out: Path, stage: str, error: BaseException) -> None:
+    """Record a run that did not complete: ``report.json`` with ``status`` ``failed`` /
+    ``interrupted`` and the stage when the folder holds no run, else ``failed_run.json`` next
+    to the previous run's files (the next complete run removes it)."""
+    from .signals import describe_interrupt
 
-    def __init__(self, out: Path):
-        import shutil
-
-        self.out = out
-        self.dir = out / ".bftaichi-partial"
-        if self.dir.exists():  # left by a run killed outright (SIGKILL, power loss)
-            shutil.rmtree(self.dir, ignore_errors=True)
-        try:
-            self.dir.mkdir()
-        except OSError as e:
-            raise DataError(f"cannot write into output folder {out}: {e.strerror or e}") from None
-
-    def commit(self) -> None:
-        import shutil
-
-        produced = {p.name for p in self.dir.iterdir()}
-        for name in RUN_OUTPUTS:  # the previous run's outputs this run does not replace
-            old = self.out / name
-            if name not in produced and (old.exists() or old.is_symlink()):
-                shutil.rmtree(old) if old.is_dir() else old.unlink()
-        for name in sorted(produced):
-            target = self.out / name
-            if target.is_dir():
-                shutil.rmtree(target)
-            os.replace(self.dir / name, target)
-        (self.out / "failed_run.json").unlink(missing_ok=True)
-        self.dir.rmdir()
-
-    def abort(self, stage: str, error: BaseException) -> None:
-        import shutil
-
-        from ..io import write_json
-
-        shutil.rmtree(self.dir, ignore_errors=True)
-        interrupted = isinstance(error, KeyboardInterrupt)
-        record = {"status": "interrupted" if interrupted else "failed", "stage": stage,
-                  "error": "interrupted (Ctrl-C or SIGTERM)" if interrupted else
-                  f"{type(error).__name__}: {error}"}
-        previous = (self.out / "report.json").exists()
-        try:
-            write_json(self.out / ("failed_run.json" if previous else "report.json"), record)
-        except BftaichiError:
-            pass  # the folder cannot be written (disk full, ...): nothing more to keep
+    interrupted = isinstance(error, KeyboardInterrupt)
+    record = {"status": "interrupted" if interrupted else "failed", "stage": stage,
+              "error": describe_interrupt(error) if interrupted else
+              f"{type(error).__name__}: {error}"}
+    previous = (out / "report.json").exists()
+    try:
+        write_json(out / ("failed_run.json" if previous else "report.json"), record)
+    except BftaichiError:
+        pass  # the folder cannot be written (disk full, ...): nothing more to keep
 
 
 def _progress(iterable, total: int, desc: str, enabled: bool, unit: str = "frame"):
@@ -226,14 +192,18 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     with timer("memory_check"):  # before the output folder: a refused run writes nothing
         memory = check_memory(cfg, frames)
     timer.rss = PeakRSS()
-    out = prepare_out_dir(out_dir, overwrite=overwrite)
-    staging = _Staging(out)
-    try:
-        report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress, memory)
-    except BaseException as e:
-        staging.abort(timer.current, e)
-        raise
-    staging.commit()
+    out = ensure_out_dir(out_dir)
+    with folder.hold(out):  # one writer at a time; the check below cannot race
+        prepare_out_dir(out, overwrite=overwrite)
+        staging = folder.Staging(out)
+        try:
+            report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress, memory)
+            timer.current = "commit"
+            staging.commit(remove=RUN_OUTPUTS + ("failed_run.json",))
+        except BaseException as e:
+            staging.discard()
+            _record_failure(out, timer.current, e)
+            raise
     return report
 
 

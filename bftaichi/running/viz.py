@@ -114,6 +114,14 @@ def _frustums(poses, K, size, depth_m: float, colors) -> tuple[np.ndarray, np.nd
 
 
 def _load_outputs(out: Path) -> dict:
+    """The outputs of a run folder, read while no commit replaces them."""
+    from .folder import reading
+
+    with reading(out):
+        return _read_outputs(out)
+
+
+def _read_outputs(out: Path) -> dict:
     from ..io import read_mesh_ply
 
     out = Path(out)
