@@ -7,9 +7,11 @@ No traceback unless ``BFTAICHI_DEBUG=1``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import click
@@ -108,6 +110,33 @@ def _print_summary(out: Path, verbose: bool = False) -> None:
     click.echo(f"outputs in {out}/")
 
 
+#: ``--strict`` of ``run`` and ``fuse`` (``run.strict``).
+STRICT_HELP = ("Refuse input that fails a plausibility check (8-bit depth, depth outside the "
+               "depth range, depth scale off by 10, poses given as T_C_W, image size against "
+               "K, GPU backend fallen back to the CPU: otherwise warnings) and a MAP solve that "
+               "does not converge (otherwise the mesh is flagged): exit 2, no mesh written.")
+
+
+@contextlib.contextmanager
+def _warnings_on_stderr():
+    """Print the plausibility warnings of a run as ``warning: ...`` on stderr, every time (also
+    with ``-q``: it silences progress and summary, not what may be wrong with the result)."""
+    from .plausibility import PlausibilityWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", PlausibilityWarning)
+        show_other = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if issubclass(category, PlausibilityWarning):
+                click.echo(f"warning: {message}", err=True)
+            else:
+                show_other(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield
+
+
 @cli.command()
 @click.argument("scene", required=False, type=click.Path(dir_okay=False))
 @click.option("--out", "-o", type=click.Path(file_okay=False), default=None,
@@ -118,8 +147,7 @@ def _print_summary(out: Path, verbose: bool = False) -> None:
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
-@click.option("--strict", is_flag=True, help="Fail (and write no mesh) if the MAP solve does not "
-              "converge.")
+@click.option("--strict", is_flag=True, help=STRICT_HELP)
 def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
     """Run a scene file end to end (the built-in tabletop scene if SCENE is omitted).
 
@@ -137,7 +165,8 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
 
     cfg = load_config(scene, _overrides(arch, sets) + (["run.strict=true"] if strict else []))
     out = Path(out or Path("out") / cfg.scene.name)
-    run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
+    with _warnings_on_stderr():
+        run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(out, verbose)
 
@@ -167,8 +196,7 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
-@click.option("--strict", is_flag=True, help="Fail (and write no mesh) if the MAP solve does not "
-              "converge.")
+@click.option("--strict", is_flag=True, help=STRICT_HELP)
 def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, pose_convention,
          rgb, out, sets, arch, overwrite, quiet, verbose, strict):
     """Fuse recorded depth frames from DATA_DIR into a TSDF mesh.
@@ -191,7 +219,8 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
         extra.append("run.strict=true")
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
                                                gt_mesh) + extra + _overrides(arch, sets))
-    run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
+    with _warnings_on_stderr():
+        run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(Path(out), verbose)
 
@@ -497,6 +526,9 @@ def view(out_dir, html_file, band, max_faces, timeout):
     if max_faces < 1000:
         raise _Error(f"--max-faces {max_faces}: must be at least 1000")
     if html_file:
+        from .io import writable_target
+
+        writable_target(html_file)  # before any work: never a device, FIFO or folder
         path = write_preview(out_dir, html_file, max_faces=max_faces, band=band)
         click.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
         return

@@ -6,6 +6,7 @@ tools/robustness_catalogue.py runs them and writes the table with the messages u
 
 from __future__ import annotations
 
+import contextlib
 import errno
 from dataclasses import dataclass
 from pathlib import Path
@@ -206,6 +207,29 @@ def not_converged_strict(root):
     return ["run", "-q", "--strict", "--out", str(root / "out"), *sets("solver.maxiter=2")]
 
 
+def focal_in_wrong_unit(root):
+    """fx = fy = 1 for a 64x48 image (a focal length in metres or normalised): a 176 degree
+    field of view. It once made the memory estimate run for minutes."""
+    d = copy_frames(root, "focal1")
+    (d / "camera-intrinsics.txt").write_text("1 0 31.5\n0 1 23.5\n0 0 1\n")
+    return fuse(d, root)
+
+
+def folder_in_use(root):
+    """Another command holds the output folder (its writer lock is taken in :func:`run_case`)."""
+    return ["run", "-q", "--overwrite", "--out", str(root / "out"), *sets()]
+
+
+def html_into_device(root):
+    (root / "out").mkdir()
+    return ["view", str(root / "out"), "--html", "/dev/null"]
+
+
+def commit_not_permitted(root):
+    """Moving the finished outputs into the folder fails (EPERM, injected in :func:`run_case`)."""
+    return ["run", "-q", "--out", str(root / "out"), *sets()]
+
+
 @dataclass
 class Case:
     name: str
@@ -243,6 +267,11 @@ CASES = [
     Case("disk full while writing", disk_full, 2, r"cannot write .*No space left on device", inject="enospc"),
     Case("Ctrl-C mid-run", ctrl_c, 130, r"interrupted", inject="sigint"),
     Case("MAP not converged with --strict", not_converged_strict, 2, r"did not converge.*strict"),
+    Case("focal length in the wrong unit (fx = fy = 1)", focal_in_wrong_unit, 2, r"frame-000000.*176\.\d degree field of view"),
+    Case("output folder in use by another command", folder_in_use, 2, r"out is in use by pid \d+ .*bftaichi fuse", inject="locked"),
+    Case("view --html into a device (/dev/null)", html_into_device, 2, r"cannot write /dev/null: it is a device"),
+    Case("SIGTERM mid-run (timeout, systemd, docker stop)", ctrl_c, 143, r"interrupted by SIGTERM", inject="sigterm"),
+    Case("moving the outputs in is not permitted", commit_not_permitted, 2, r"cannot replace the outputs .*Operation not permitted.*previous outputs are kept", inject="eperm"),
 ]
 
 
@@ -262,13 +291,44 @@ def run_case(case: Case, root: Path) -> tuple[int, str]:
         def fsync(fd):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         patches.append(mock.patch("bftaichi.io.os.fsync", fsync))
-    elif case.inject == "sigint":
+    elif case.inject in ("sigint", "sigterm"):
+        import signal
+
+        from bftaichi.running.signals import Terminated
+
         def interrupted(*args, **kwargs):
-            raise KeyboardInterrupt
+            raise KeyboardInterrupt if case.inject == "sigint" else Terminated(signal.SIGTERM)
         patches.append(mock.patch("bftaichi.reconstructor.Reconstructor.solve", interrupted))
+    elif case.inject == "eperm":
+        def move(src, dst):
+            raise PermissionError(errno.EPERM, os.strerror(errno.EPERM), str(src))
+        patches.append(mock.patch("bftaichi.running.folder._move", move))
+    elif case.inject == "locked":
+        patches.append(_held_by_another_command(root / "out"))
     with contextlib.ExitStack() as stack:
         for p in patches:
             stack.enter_context(p)
         stack.enter_context(contextlib.redirect_stderr(err))
         code = main(argv)
     return code, err.getvalue().strip()
+
+
+@contextlib.contextmanager
+def _held_by_another_command(out: Path):
+    """The writer lock of ``out`` taken as `bftaichi fuse` takes it (another open of the lock
+    file conflicts even within this process)."""
+    import fcntl
+    import json
+    import os
+
+    from bftaichi.running import folder
+
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / folder.LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.write(fd, json.dumps({"pid": os.getpid(), "host": "this-host", "started": "now",
+                                 "command": "bftaichi fuse DATA --out OUT"}).encode())
+        yield
+    finally:
+        os.close(fd)

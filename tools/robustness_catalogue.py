@@ -29,16 +29,28 @@ The same cases are tested by `tests/test_robustness.py::test_catalogue_case`. Ea
 - print no traceback (set `BFTAICHI_DEBUG=1` to get one);
 - leave no half-written file.
 
-Nothing is lost or half-written:
-- A run writes into `OUT/.bftaichi-partial/` and moves its files into `OUT` only when every stage
-  has finished.
-- An interrupted or failed run therefore leaves the previous complete outputs byte for byte, or
-  none (`test_an_interrupted_run_keeps_the_previous_outputs`, `test_disk_full_keeps_the_previous_outputs`).
-- The failure is recorded honestly: `status` `failed` or `interrupted`, the `stage`, and the
-  error. It goes into `report.json` when the folder held no run
-  (`test_a_failed_first_run_leaves_only_its_report`), else into `failed_run.json` next to the
+Nothing is lost, nothing is mixed (`bftaichi/running/folder.py`, tests in `tests/test_folder.py`
+and `tests/test_robustness.py`):
+- **All or nothing.** A writer stages its outputs in `OUT/.bftaichi-partial/`. The commit writes
+  a journal (`OUT/.bftaichi-commit.json`, the commit point), moves the old outputs aside, the new
+  ones in, and removes the journal. A move that fails is undone: the previous run stays byte for
+  byte (`test_a_move_that_fails_keeps_the_previous_run_and_records_the_failure`). A process
+  killed anywhere in the commit leaves the journal, and the next writer or reader completes the
+  commit first: a reader sees the old run or the new run, never a mix
+  (`test_a_commit_killed_at_any_step_leaves_the_old_run_or_the_new_one` kills at every step).
+- **One writer.** Every command that writes into a folder (`run`, `fuse`, `nbv`, `scan`,
+  `evalviews`, the API's `save`) holds its lock `OUT/.bftaichi.lock`. A second writer is refused
+  at once with the holder's pid, command and start time; a lock left by a killed process is
+  broken with a warning (`test_a_second_writer_is_refused_with_the_holder_named`,
+  `test_two_concurrent_runs_into_one_folder`, `test_a_lock_left_by_a_killed_process_is_broken`).
+  Readers (`view`, `Posterior.load`) share a lock on the folder that only a commit excludes.
+- **Interrupted or failed runs.** Ctrl-C, SIGTERM and SIGHUP discard the staged outputs and exit
+  with 128 + the signal number. The failure is recorded honestly: `status` `failed` or
+  `interrupted`, the `stage`, and the error. It goes into `report.json` when the folder held no
+  run (`test_a_failed_first_run_leaves_only_its_report`), else into `failed_run.json` next to the
   previous run. The next complete run removes it.
-- Every file is written to a temp file in the same folder, then renamed.
+- Every file is written to a temp file in the same folder, then renamed. A write never replaces
+  a device, FIFO, socket or folder; a symlink is written through.
 - A MAP solve that does not converge is reported as not converged, with its residual. Its mesh
   is written and flagged in `report.json` (`flags: ["map_not_converged"]`), or refused with
   `--strict`. Probes that did not converge are counted (`flags`, `solver.variance.n_not_converged`).
