@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["Frame", "clean_depth"]
+from .geometry import pose_in_local
+
+__all__ = ["Frame", "clean_depth", "LocalFrames", "local_frames"]
 
 
 @dataclass(frozen=True)
@@ -39,3 +41,32 @@ def clean_depth(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float) -> 
     d = np.asarray(depth_m, dtype=np.float32)
     valid = np.isfinite(d) & (d >= depth_min_m) & (d <= depth_max_m) & (d > 0)
     return np.where(valid, d, np.float32(0.0)).astype(np.float32, copy=False)
+
+
+class LocalFrames:
+    """A frame source (``len`` and indexing) whose frames come with their pose in the local
+    frame of ``origin`` (their ``T_W_C`` field holds ``T_L_C``,
+    :func:`bftaichi.geometry.pose_in_local`): what the kernels of a grid built around
+    ``origin`` take."""
+
+    def __init__(self, frames, origin):
+        self.frames = frames
+        self.origin = np.asarray(origin, np.float64)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int) -> Frame:
+        return self._local(self.frames[i])
+
+    def __iter__(self):
+        return (self._local(f) for f in self.frames)
+
+    def _local(self, frame: Frame) -> Frame:
+        return replace(frame, T_W_C=pose_in_local(frame.T_W_C, self.origin))
+
+
+def local_frames(frames, origin):
+    """``frames`` with local poses (:class:`LocalFrames`); ``frames`` itself when ``origin`` is
+    zero."""
+    return LocalFrames(frames, origin) if np.any(origin) else frames

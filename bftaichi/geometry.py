@@ -9,9 +9,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from kernels.layout import BLOCK, MAP_BLOCKS
+
 from .errors import DataError
 
-__all__ = ["intrinsics", "look_at", "check_K", "check_pose", "check_depth"]
+__all__ = ["intrinsics", "look_at", "check_K", "check_pose", "check_depth", "MAP_VOXELS",
+           "LOCAL_ORIGIN_VOXELS", "local_origin", "pose_in_local", "points_in_local",
+           "points_in_world", "mesh_in_local"]
+
+#: Voxels per axis of the TSDF's block map (:data:`kernels.layout.MAP_BLOCKS` blocks of 8): the
+#: grid holds ``MAP_VOXELS * voxel_size`` metres per axis (81.92 m at 1 cm voxels, 409.6 m at
+#: 5 cm), centred on its origin.
+MAP_VOXELS = MAP_BLOCKS * BLOCK
+
+#: A first camera farther than this many voxels from the world origin along some axis moves the
+#: grid to a local origin next to it (:func:`local_origin`): a quarter of the map's half-range,
+#: 10.24 m at 1 cm voxels, 51.2 m at 5 cm. A scene near the world origin keeps the world as its
+#: grid (and its outputs, byte for byte) with three quarters of the half-range to spare.
+LOCAL_ORIGIN_VOXELS = MAP_VOXELS // 8
 
 
 def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
@@ -90,3 +105,58 @@ def check_depth(depth, where: str, shape: tuple[int, int] | None = None) -> np.n
         raise DataError(f"{where}: depth is {depth.shape[1]}x{depth.shape[0]} (WxH) but the "
                         f"intrinsics are for {shape[1]}x{shape[0]}")
     return depth
+
+
+# -- the local frame ---------------------------------------------------------------------------
+# The sparse TSDF holds MAP_VOXELS voxels per axis around its grid's origin, and every kernel
+# computes in float32 (ulp 0.5 m at 5,000 km): a georeferenced scene (UTM) or a long trajectory
+# is built in a *local* frame L, the world translated by ``origin`` (float64, metres):
+# ``p_W = origin + p_L``. Poses move into it in float64 before anything is cast to float32.
+
+
+def local_origin(camera_centre, voxel_size_m: float) -> np.ndarray:
+    """The origin (3,) float64, metres, world frame) of the grid of a scene whose first camera
+    is at ``camera_centre``: zeros when the camera is within :data:`LOCAL_ORIGIN_VOXELS` voxels
+    of the world origin along every axis, else the integer multiple of the block edge
+    (``8 voxel_size_m``) nearest the camera, so the local voxel lattice is the world's."""
+    c = np.asarray(camera_centre, np.float64).reshape(3)
+    if np.abs(c).max() <= LOCAL_ORIGIN_VOXELS * voxel_size_m:
+        return np.zeros(3)
+    block_m = BLOCK * voxel_size_m
+    return np.round(c / block_m) * block_m
+
+
+def pose_in_local(T_W_C, origin) -> np.ndarray:
+    """``T_L_C`` (4, 4) float64: the pose ``T_W_C`` in the local frame of ``origin`` (its
+    translation minus ``origin``, in float64). ``T_W_C`` itself when ``origin`` is zero."""
+    if not np.any(origin):
+        return T_W_C
+    T = np.array(T_W_C, np.float64)
+    T[:3, 3] -= origin
+    return T
+
+
+def points_in_local(points_W, origin) -> np.ndarray:
+    """World points (..., 3) in the local frame of ``origin`` (float64); ``points_W`` itself
+    when ``origin`` is zero."""
+    if not np.any(origin):
+        return points_W
+    return np.asarray(points_W, np.float64) - origin
+
+
+def points_in_world(points_L, origin) -> np.ndarray:
+    """Local points (..., 3) (e.g. float32 mesh vertices) in the world frame, float64:
+    ``origin + points_L``; ``points_L`` itself when ``origin`` is zero."""
+    if not np.any(origin):
+        return points_L
+    return origin + np.asarray(points_L, np.float64)
+
+
+def mesh_in_local(mesh, origin):
+    """A ``trimesh.Trimesh`` in world coordinates moved into the local frame of ``origin`` (a
+    new mesh with the same faces); ``mesh`` itself when ``origin`` is zero."""
+    if not np.any(origin):
+        return mesh
+    import trimesh
+
+    return trimesh.Trimesh(points_in_local(mesh.vertices, origin), mesh.faces, process=False)

@@ -105,15 +105,29 @@ def write_npz(path: str | os.PathLike, **arrays) -> None:
 
 def write_mesh_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
                    vertex_attrs: dict[str, np.ndarray] | None = None,
-                   vertex_colors: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY: vertex ``x y z`` (float32) + extra float32 attributes
-    (e.g. ``sigma``) + optional ``red green blue`` (uint8), and ``vertex_indices`` faces (int32)."""
+                   vertex_colors: np.ndarray | None = None, origin=None) -> None:
+    """Binary little-endian PLY: vertex ``x y z`` + extra float32 attributes (e.g. ``sigma``)
+    + optional ``red green blue`` (uint8), and ``vertex_indices`` faces (int32).
+
+    ``vertices`` (n, 3) are in the local frame of ``origin`` ((3,) float64 metres, world
+    position of the local frame; None or zeros: the world frame itself). The file always
+    holds world coordinates: with a zero origin ``x y z`` are ``float`` (float32, the
+    vertices as given); with a non-zero one they are ``double`` (float64) ``origin +
+    vertices``, since float32 cannot hold georeferenced coordinates (its ulp is 0.5 m at
+    5,000 km). :func:`read_mesh_ply` and common PLY readers (trimesh, Open3D, plyfile) read
+    both."""
     from plyfile import PlyData, PlyElement
 
-    vertices = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
+    world = origin is not None and bool(np.any(origin))
+    if world:
+        vertices = (np.asarray(origin, np.float64).reshape(3)
+                    + np.asarray(vertices, dtype=np.float64).reshape(-1, 3))
+    else:
+        vertices = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
     faces = np.asarray(faces, dtype=np.int32).reshape(-1, 3)
     vertex_attrs = vertex_attrs or {}
-    dtype = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    xyz = "f8" if world else "f4"
+    dtype = [("x", xyz), ("y", xyz), ("z", xyz)]
     dtype += [(name, "f4") for name in vertex_attrs]
     if vertex_colors is not None:
         dtype += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
@@ -138,7 +152,9 @@ def write_mesh_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndar
 
 
 def read_mesh_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """Read a PLY written by :func:`write_mesh_ply`: (vertices, faces, extra vertex properties)."""
+    """Read a PLY written by :func:`write_mesh_ply`: (vertices, faces, extra vertex properties).
+    Vertices are world coordinates: float32 when the file stores ``float`` x y z, float64 when
+    it stores ``double`` (a mesh of a scene far from the world origin)."""
     from plyfile import PlyData
 
     try:  # triangles (what write_mesh_ply writes): plyfile's vectorised path
@@ -146,7 +162,8 @@ def read_mesh_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict
     except Exception:  # noqa: BLE001 - other lists or a damaged file: the general reader
         ply = PlyData.read(str(path))
     v = ply["vertex"].data
-    vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    xyz = np.float64 if v.dtype["x"].itemsize == 8 else np.float32
+    vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(xyz)
     extra = {n: np.asarray(v[n]) for n in v.dtype.names if n not in ("x", "y", "z")}
     faces = np.zeros((0, 3), np.int32)
     if "face" in ply and len(ply["face"].data):

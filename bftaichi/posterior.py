@@ -1,5 +1,10 @@
 """The result of Algorithm 1: the Gaussian posterior of the SDF over the narrow band
-(:class:`Posterior`), what ``band.npz`` holds of it, and its surface (step 7)."""
+(:class:`Posterior`), what ``band.npz`` holds of it, and its surface (step 7).
+
+Coordinates: the band's ``ijk`` are local; voxel ``ijk`` is at world
+``origin + (ijk + 0.5) * voxel_size`` (``origin`` float64, zeros for a scene near the world
+origin). :meth:`Posterior.extract_mesh` returns world coordinates (``local=True``: the local
+frame); ``mesh.ply`` holds world coordinates (float64 ``x y z`` when the origin is not zero)."""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ import numpy as np
 import trimesh
 
 from .errors import DataError
+from .geometry import points_in_world
 from .stages.band import Band
 from .stages.observe import ObservationConfig
 
@@ -19,6 +25,9 @@ __all__ = ["Posterior", "VERTEX_ATTRS", "mesh_attrs"]
 #: band.npz arrays of the DESIGN.md section 4 contract, and those that let planning and
 #: evaluation reload the posterior's observation model (not written by older versions).
 BAND_ARRAYS = ("ijk", "voxel_size", "mean", "var", "tsdf", "weight")
+#: band.npz's ``origin`` (float64 (3,), metres) of the local grid; absent in older versions
+#: (whose grid is the world's: zeros).
+ORIGIN_ARRAY = "origin"
 MODEL_ARRAYS = ("observation", "trunc_m", "bootstrap_trunc_m", "sigma_extra_m", "sigma_corr_m")
 #: |grad mean| is floored here for ``sigma_pos = sigma / |grad mean|`` (dimensionless; an SDF
 #: has slope 1). Where the mean is nearly flat (thin structures, where the two sides' bands
@@ -62,6 +71,8 @@ class Posterior:
         variance: probe stats (probes, method, iterations, not_converged).
         observations: counts of the observation pass and the noise fit.
         seconds: wall time of each sub-stage (band, noise, observe, prior, map, variance).
+        origin: (3,) float64 world position of the local grid's origin, metres: voxel ``ijk``
+            is at world ``origin + (ijk + 0.5) * voxel_size`` (zeros: the grid is the world's).
     """
 
     band: Band
@@ -78,8 +89,10 @@ class Posterior:
     variance: dict = field(default_factory=dict)
     observations: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
-    ijk = property(lambda self: self.band.ijk, doc="(N, 3) int32 band voxel indices, sorted.")
+    ijk = property(lambda self: self.band.ijk, doc="(N, 3) int32 band voxel indices (local "
+                   "grid), sorted.")
     tsdf = property(lambda self: self.band.tsdf, doc="(N,) float32 bootstrap TSDF, metres.")
     weight = property(lambda self: self.band.weight, doc="(N,) float32 bootstrap weight.")
 
@@ -91,11 +104,12 @@ class Posterior:
     def band_arrays(self) -> dict:
         """The arrays of ``band.npz``: the DESIGN.md section 4 contract (``ijk, voxel_size,
         mean, var, tsdf, weight``), ``cov`` ((N, 3) float32 m^2, see the class docstring; left
-        out when None) and the observation model (``observation``: its settings as a JSON
+        out when None), the observation model (``observation``: its settings as a JSON
         string, ``trunc_m``, ``bootstrap_trunc_m``, ``sigma_extra_m``, ``sigma_corr_m``; float64,
-        metres)."""
+        metres) and ``origin`` ((3,) float64 metres, always written)."""
         arrays = {"ijk": self.ijk, "voxel_size": np.float32(self.voxel_size), "mean": self.mean,
-                  "var": self.var, "tsdf": self.tsdf, "weight": self.weight}
+                  "var": self.var, "tsdf": self.tsdf, "weight": self.weight,
+                  ORIGIN_ARRAY: np.asarray(self.origin, np.float64)}
         if self.cov is not None:
             arrays["cov"] = self.cov
         if self.observation is not None:
@@ -131,6 +145,10 @@ class Posterior:
             raise DataError(f"{path}: arrays ijk (N, 3) and mean/var/tsdf/weight (N,) disagree")
         if "cov" in data and data["cov"].shape != (n, 3):
             raise DataError(f"{path}: array cov has shape {data['cov'].shape}, not ({n}, 3)")
+        origin = np.asarray(data.get(ORIGIN_ARRAY, np.zeros(3)), np.float64)
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise DataError(f"{path}: array origin must be 3 finite numbers (metres), got "
+                            f"shape {origin.shape}")
         model = {}
         if all(k in data for k in MODEL_ARRAYS if k != "sigma_corr_m"):
             try:
@@ -146,7 +164,8 @@ class Posterior:
         band = Band.from_voxels(data["ijk"], data["tsdf"], data["weight"])
         return cls(band=band, voxel_size=float(data["voxel_size"]),
                    mean=data["mean"].astype(np.float32), var=data["var"].astype(np.float32),
-                   cov=data["cov"].astype(np.float32) if "cov" in data else None, **model)
+                   cov=data["cov"].astype(np.float32) if "cov" in data else None, **model,
+                   origin=origin)
 
     def save(self, out_dir) -> Path:
         """Write ``mesh.ply`` (:meth:`extract_mesh`, vertex ``sigma sigma_pos``) and ``band.npz``
@@ -164,14 +183,17 @@ class Posterior:
         """``mesh.ply`` and ``band.npz`` into ``folder``."""
         from .io import write_mesh_ply, write_npz
 
-        mesh = self.extract_mesh()
+        mesh = self.extract_mesh(local=True)
         write_mesh_ply(folder / "mesh.ply", mesh.vertices, mesh.faces,
-                       vertex_attrs=mesh_attrs(mesh))
+                       vertex_attrs=mesh_attrs(mesh), origin=self.origin)
         write_npz(folder / "band.npz", **self.band_arrays())
 
-    def extract_mesh(self) -> trimesh.Trimesh:
+    def extract_mesh(self, *, local: bool = False) -> trimesh.Trimesh:
         """Step 7: marching cubes at ``mean = 0`` over cells whose 8 corners are band voxels
-        observed by the bootstrap (weight > 0), with vertex attributes (:data:`VERTEX_ATTRS`):
+        observed by the bootstrap (weight > 0), with vertex attributes (:data:`VERTEX_ATTRS`).
+        Vertices in world coordinates (float64 ``origin + vertex``), or with ``local`` in the
+        local grid's frame (the float32 marching-cubes vertices, what the viewer and the
+        kernels take).
 
         ``sigma`` (metres): the posterior std of the SDF interpolated at the vertex,
         ``sqrt(a_v^T Q^-1 a_v)`` (DESIGN.md 3.7). A vertex lies on the grid edge between
@@ -197,7 +219,8 @@ class Posterior:
 
         vertices, faces, edges = extract_mesh(self.ijk, self.mean, self.weight > 0,
                                               self.voxel_size, return_edges=True)
-        mesh = trimesh.Trimesh(vertices, faces, process=False)
+        mesh = trimesh.Trimesh(vertices if local else points_in_world(vertices, self.origin),
+                               faces, process=False)
         sigma = sigma_pos = np.zeros(0, np.float32)
         if len(vertices):
             everywhere = np.ones(len(self.ijk), bool)

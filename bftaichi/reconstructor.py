@@ -18,6 +18,12 @@ drive it. Each step is a module of :mod:`bftaichi.stages` owning its ``[section]
 
 Conventions (DESIGN.md section 2): metres; depth along the camera z axis, (H, W), 0 / NaN
 invalid; ``K`` the 3x3 OpenCV pinhole matrix; ``T_W_C`` the 4x4 camera-to-world pose.
+
+Coordinates: what goes in and comes out is in world coordinates (poses, meshes, NBV poses,
+ground truth); the grid is built in a local frame, ``recon.origin`` (float64, metres) from the
+first frame (:func:`bftaichi.geometry.local_origin`: zeros near the world origin), and the
+band's integer ``ijk`` stay local: voxel ``ijk`` is at ``origin + (ijk + 0.5) * voxel_size``.
+Methods that return geometry take ``local=True`` for the local frame (float32-exact).
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import numpy as np
 
 from .config import Config
 from .errors import BftaichiError, NoSurfaceError
-from .frame import Frame, clean_depth
+from .frame import Frame, clean_depth, local_frames
 from .geometry import check_K, check_pose
 from .posterior import Posterior
 from .stages.band import build_band
@@ -68,6 +74,12 @@ class Reconstructor:
         self._voxels = None  # the bootstrap's export, until the next frame
 
     @property
+    def origin(self) -> np.ndarray:
+        """(3,) float64 world position of the local grid's origin, metres (zeros until the first
+        frame, and for a scene near the world origin; :class:`TSDFVolume` ``origin``)."""
+        return self.tsdf.origin
+
+    @property
     def K(self) -> np.ndarray | None:
         """(3, 3) intrinsics of the first kept frame (None before any)."""
         return self.frames[0].K if self.frames else None
@@ -82,7 +94,8 @@ class Reconstructor:
 
     @property
     def voxels(self) -> dict:
-        """The bootstrap's observed voxels (:meth:`TSDFVolume.export`: ``ijk, tsdf, weight``)."""
+        """The bootstrap's observed voxels (:meth:`TSDFVolume.export`: ``ijk, tsdf, weight``;
+        ``ijk`` in the local grid of :attr:`origin`)."""
         if self._voxels is None:
             self._voxels = self.tsdf.export()
         return self._voxels
@@ -114,9 +127,11 @@ class Reconstructor:
         MAP (warm-started from the last solve) and, unless ``variance=False``, the probe
         variance and face-neighbour covariance (else ``var`` is ``1/Q_ii``, a lower bound, and
         ``cov`` None). ``frame_iter(frames, desc)``
-        yields the frames of the observation pass (the pipeline's prefetching reader). Raises
-        NoSurfaceError when no voxel was observed."""
+        yields the frames of the observation pass (the pipeline's prefetching reader). Frames
+        hold world poses; they are moved into the local frame of :attr:`origin` as they are
+        read. Raises NoSurfaceError when no voxel was observed."""
         cfg, frames = self.config, self.frames if frames is None else frames
+        frames = local_frames(frames, self.origin)
         vs, tau, o = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m, cfg.observation
         if len(self.voxels["ijk"]) == 0:
             raise NoSurfaceError(f"no surface was observed in {self.tsdf.n_frames} frames: check "
@@ -166,13 +181,15 @@ class Reconstructor:
             sigma_extra_m=float(noise["sigma_extra_m"]),
             sigma_corr_m=float(noise["sigma_corr_m"]), solver=map_stats,
             variance=_plain(var_stats), observations=_plain(dict(counts, noise_fit=noise)),
-            seconds=lap.seconds)
+            seconds=lap.seconds, origin=self.origin.copy())
         return self.posterior
 
-    def tsdf_mesh(self):
+    def tsdf_mesh(self, *, local: bool = False):
         """Step 7 for the bootstrap: its mesh (cells whose 8 corners have weight >=
-        ``mesh.min_weight``), the baseline ``tsdf_mesh.ply``."""
-        return self.tsdf.extract_mesh(self.config.mesh.min_weight, voxels=self.voxels)
+        ``mesh.min_weight``), the baseline ``tsdf_mesh.ply``; world coordinates, or the local
+        frame with ``local``."""
+        return self.tsdf.extract_mesh(self.config.mesh.min_weight, voxels=self.voxels,
+                                      local=local)
 
     def save(self, out_dir: str | os.PathLike) -> Path:
         """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma`` and ``sigma_pos``) and
@@ -181,9 +198,9 @@ class Reconstructor:
         from .running.folder import staged
 
         out = ensure_out_dir(out_dir)
-        mesh = self.tsdf_mesh()
+        mesh = self.tsdf_mesh(local=True)
         with staged(out) as staging:  # the files replaced together, one writer at a time
-            write_mesh_ply(staging / "tsdf_mesh.ply", mesh.vertices, mesh.faces)
+            write_mesh_ply(staging / "tsdf_mesh.ply", mesh.vertices, mesh.faces, origin=self.origin)
             if self.posterior is not None:
                 self.posterior._write(staging)
         return out

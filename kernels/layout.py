@@ -24,6 +24,8 @@ import numpy as np
 
 BLOCK = 8  # voxels per block edge
 BLOCK_VOXELS = BLOCK ** 3
+MAP_BLOCKS = 1024  # blocks per axis of the TSDF's block map (kernels.tsdf), centred on the
+#                    grid's origin: blocks [-MAP_BLOCKS / 2, MAP_BLOCKS / 2), i.e. 8192 voxels
 KEY_BITS = 21  # bits per axis of a block key
 KEY_BIAS = 1 << (KEY_BITS - 1)  # block coordinates in [-2^20, 2^20) (8.4M voxels per axis)
 KEY_MASK = (1 << KEY_BITS) - 1

@@ -10,10 +10,12 @@ Layout::
     block cache  ndarray cache (65536,) i64: direct-mapped "already listed this frame" cache
 
 * A *block* is 8^3 voxels. Block index ``b = floor(ijk / 8)``; voxel ``ijk`` (may be negative)
-  has centre ``(ijk + 0.5) * voxel_size`` in the world frame.
+  has centre ``(ijk + 0.5) * voxel_size`` in the frame of the poses it is given (a caller with
+  far-away poses moves them into a local frame first: bftaichi.geometry.local_origin).
 * The *block map* is a sparse Taichi SNode tree: below a per-volume pointer, two pointer levels
-  give a virtual range of 64 * 16 = 1024 blocks (8192 voxels, 82 m at 1 cm voxels) per axis,
-  centred on the origin (block ``b`` sits at map index ``b + 512``). A volume's top level
+  give a virtual range of 64 * 16 = 1024 blocks (``layout.MAP_BLOCKS``; 8192 voxels, 82 m at
+  1 cm voxels) per axis, centred on the origin (block ``b`` sits at map index ``b + 512``);
+  activation samples outside it are dropped and counted. A volume's top level
   (64^3 pointers, 2 MB) is allocated when it first touches a block, a 16^3 chunk of block cells
   when a ray first reaches it. A block cell holds the block's *slot* (1-based, 0 = none yet)
   and the number of the last frame that touched the block.
@@ -56,11 +58,11 @@ import taichi as ti
 from taichi.lang import impl
 
 from .funcs import floor_i32
-from .layout import BLOCK, BLOCK_VOXELS
+from .layout import BLOCK, BLOCK_VOXELS, MAP_BLOCKS
 from .stencil import first_chunk, virtual_iterations
 MAX_VOLUMES = 1 << 12  # volumes per Taichi program (ids are not reused)
 L1 = 64  # first spatial pointer level: cells per axis
-L2 = 16  # second spatial pointer level: blocks per axis in one first-level cell
+L2 = MAP_BLOCKS // L1  # second spatial pointer level: blocks per axis in one first-level cell
 BLOCKS_PER_AXIS = L1 * L2
 BLOCK_OFFSET = BLOCKS_PER_AXIS // 2  # block b is stored at map index b + BLOCK_OFFSET
 CACHE_BITS = 16  # the block cache has 2^16 entries (512 KB)
@@ -435,6 +437,10 @@ class SparseTSDF:
         if self.with_color:
             out["rgb"] = self.rgb.to_numpy()[flat]
         return out
+
+    def blocks(self) -> np.ndarray:
+        """Block indices (n, 3) int32 of every allocated block, in slot order."""
+        return self.slot_block.to_numpy()[:int(self.counts[C_SLOTS])]
 
     def stats(self) -> dict:
         """Allocated blocks, and activation samples that fell outside the index range."""

@@ -89,7 +89,8 @@ def test_run_band_npz_has_the_documented_arrays(tiny_run):
     with np.load(tiny_run / "band.npz") as band:
         assert set(band.files) == {"ijk", "voxel_size", "mean", "var", "cov", "tsdf", "weight",
                                    "observation", "trunc_m", "bootstrap_trunc_m", "sigma_extra_m",
-                                   "sigma_corr_m"}
+                                   "sigma_corr_m", "origin"}
+        assert band["origin"].dtype == np.float64 and not band["origin"].any()  # near the origin
         ijk, tsdf, weight = band["ijk"], band["tsdf"], band["weight"]
         observation = json.loads(str(band["observation"]))
         trunc_m, sigma_extra_m = float(band["trunc_m"]), float(band["sigma_extra_m"])

@@ -555,9 +555,13 @@ def test_random_frames_integrate_or_raise_and_the_volume_stays_finite(volume, da
 
 def test_the_fuzzed_volume_still_integrates_a_plain_frame(volume):
     """After the fuzzing above (same module-scoped volume), a plane 1 m ahead still updates voxels
-    and the volume stays finite: the rejected and odd frames left it usable."""
+    and the volume stays finite: the rejected and odd frames left it usable. The camera sits at
+    the volume's origin, which the first fuzzed frame chose (its grid is local to that frame,
+    bftaichi.geometry.local_origin; a frame farther than the map reaches is refused)."""
+    T = np.eye(4)
+    T[:3, 3] = volume.origin
     updates = volume.integrate(np.full((24, 32), 1.0, np.float32), intrinsics(30, 30, 15.5, 11.5),
-                               np.eye(4), name="plane")
+                               T, name="plane")
     v = volume.export()
     assert updates > 0 and len(v["ijk"]) > 0
     assert np.all(np.isfinite(v["tsdf"])) and np.all(v["weight"] > 0)

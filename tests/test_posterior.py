@@ -96,7 +96,8 @@ def test_tsdf_only_stage_skips_the_posterior(tmp_path):
     report = bf.run(cfg, tmp_path, progress=False)
     assert not (tmp_path / "mesh.ply").exists()
     assert "posterior" not in report["stages_run"] and report["solver"] is None
-    assert set(np.load(tmp_path / "band.npz").files) == {"ijk", "voxel_size", "tsdf", "weight"}
+    assert set(np.load(tmp_path / "band.npz").files) == {"ijk", "voxel_size", "tsdf", "weight",
+                                                         "origin"}
 
 
 def test_same_seed_gives_identical_band_arrays(tmp_path):

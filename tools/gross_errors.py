@@ -35,23 +35,24 @@ def main(argv=None) -> int:
     from bftaichi.backend import init
     from bftaichi.formats import open_dataset
     from bftaichi.formats.synthetic import DepthRenderer
+    from bftaichi.geometry import points_in_local, pose_in_local
     from bftaichi.io import read_mesh_ply
     from bftaichi.posterior import Posterior
     from kernels.raycast import raycast_depth
 
     init("cpu")
     post = Posterior.load(args.run / "band.npz")
-    v, f, _ = read_mesh_ply(args.run / "tsdf_mesh.ply")
-    tsdf = DepthRenderer(trimesh.Trimesh(v, f, process=False))
+    v, f, _ = read_mesh_ply(args.run / "tsdf_mesh.ply")  # world; rendered in the band's frame
+    tsdf = DepthRenderer(trimesh.Trimesh(points_in_local(v, post.origin), f, process=False))
     ds = open_dataset(args.data)
     observed = (post.weight > 0).astype(np.uint8)
     front = behind = tsdf_only = pixels = 0
     for i in range(1, min(args.frames, len(ds)), args.every):
         fr = ds[i]
         h, w = fr.depth_m.shape
+        T = np.array(pose_in_local(fr.T_W_C, post.origin), np.float64)
         z = raycast_depth(post.band.block_keys, post.band.block_table, post.mean, observed,
-                          post.voxel_size, fr.K, fr.T_W_C, w, h, 0.1, 6.0)
-        T = np.array(fr.T_W_C, np.float64)
+                          post.voxel_size, fr.K, T, w, h, 0.1, 6.0)
         U, _, Vt = np.linalg.svd(T[:3, :3])
         T[:3, :3] = U @ Vt
         zt = tsdf.render(fr.K, T, w, h)

@@ -24,6 +24,10 @@ ground-truth mesh, but every held-out depth frame is a measurement of the true s
    with the posterior; ``e`` = 0 when the fit is off). The held-out frames play no part in
    that fit. Reported: the fraction with ``|r| <= 1, 2, 3`` (ideal 68.3 / 95.4 / 99.7 %) and
    the same for ``sigma_z`` alone.
+
+Every method renders in the run's local frame (``band.npz`` ``origin``): held-out poses, the
+TSDF mesh and Open3D's fused frames are moved into it, so a scene far from the world origin is
+judged like one near it (Embree and Open3D compute in float32).
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ import numpy as np
 
 from ..config import Config
 from ..errors import ConfigError
+from ..frame import local_frames
+from ..geometry import mesh_in_local, pose_in_local
 
 __all__ = ["evaluate_views", "split_frames"]
 
@@ -171,9 +177,10 @@ def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open
     observed = post.band.observed.astype(np.uint8)
     from .metrics import load_mesh
 
-    renderers = {"tsdf": DepthRenderer(load_mesh(out / "tsdf_mesh.ply"))}
+    origin = post.origin  # the run's local frame (module docstring)
+    renderers = {"tsdf": DepthRenderer(mesh_in_local(load_mesh(out / "tsdf_mesh.ply"), origin))}
     t1 = time.perf_counter()
-    o3d_mesh = _open3d_mesh(fused, cfg) if open3d else None
+    o3d_mesh = _open3d_mesh(local_frames(fused, origin), cfg) if open3d else None
     t_o3d = time.perf_counter() - t1
     if o3d_mesh is not None and len(o3d_mesh.faces):
         renderers["open3d"] = DepthRenderer(o3d_mesh)
@@ -188,7 +195,8 @@ def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open
         f = frames[i]
         h, w = f.depth_m.shape
         D = f.depth_m
-        z, sz = raycast_depth(keys, table, post.mean, observed, vs, f.K, f.T_W_C, w, h,
+        T_L_C = pose_in_local(f.T_W_C, origin)
+        z, sz = raycast_depth(keys, table, post.mean, observed, vs, f.K, T_L_C, w, h,
                               cfg.scene.depth_min_m, cfg.scene.depth_max_m, var=post.var,
                               slope_min=SLOPE_MIN)
         both = scores["bftaichi"].add(z, D)
@@ -203,7 +211,7 @@ def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open
         cover["sigma_z_only"] += (np.abs(r)[None] <= k * s_pred).sum(1)
         cover["n"] += len(r)
         sigma_z_sum += float(s_pred.sum())
-        T = np.array(f.T_W_C, np.float64)
+        T = np.array(T_L_C, np.float64)
         U, _, Vt = np.linalg.svd(T[:3, :3])  # recorded poses are rigid to ~1e-4; the
         T[:3, :3] = U @ Vt  # renderer wants 1e-6
         for name, renderer in renderers.items():

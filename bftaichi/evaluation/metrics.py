@@ -427,12 +427,16 @@ def format_table(rows: dict[str, dict], keys: list[str] | None = None) -> str:
 
 def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0):
     """``(mean, sigma, phi)`` of the observed band voxels (bootstrap weight > 0) within
-    ``near_voxels`` voxels of the ground-truth surface, ``phi`` their true signed distance
-    (:func:`bftaichi.evaluation.metrics.surface_sdf`, sampled every voxel / 4); None when fewer than 2
-    voxels qualify."""
+    ``near_voxels`` voxels of the ground-truth surface ``gt`` (world coordinates), ``phi`` their
+    true signed distance (:func:`bftaichi.evaluation.metrics.surface_sdf`, sampled every
+    voxel / 4, computed in the posterior's local frame); None when fewer than 2 voxels
+    qualify."""
+    from ..geometry import mesh_in_local
+
     vs = post.voxel_size
     centres = (post.ijk.astype(np.float64) + 0.5) * vs
-    phi, valid = surface_sdf(gt, centres, spacing_m=vs / 4, seed=seed)
+    phi, valid = surface_sdf(mesh_in_local(gt, post.origin), centres, spacing_m=vs / 4,
+                             seed=seed)
     near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
     if np.count_nonzero(near) < 2:
         return None

@@ -37,6 +37,10 @@ For a candidate view ``v`` (pose ``T_W_C``, the run's intrinsics):
 
 ``U(v) = U_known + U_unknown``, metres^2. Without step 4 a planner can never improve
 completeness: unseen surface has no voxels in the band to score.
+
+Coordinates: candidate poses, targets, the region of interest and the coverage grid are in
+world coordinates (the coverage kernels ray-march in float64); only the band's kernels (steps
+1 and 2) get a candidate's pose moved into the posterior's local frame (``post.origin``).
 """
 
 from __future__ import annotations
@@ -48,7 +52,7 @@ import numpy as np
 
 from ..config import Config
 from ..errors import ConfigError, DataError
-from ..geometry import check_pose, look_at
+from ..geometry import check_pose, look_at, points_in_world, pose_in_local
 
 __all__ = ["sphere_candidates", "ring_candidates", "load_poses", "make_candidates",
            "candidates_around", "rank", "CoverageGrid", "region_of_interest", "Planner", "plan"]
@@ -132,13 +136,17 @@ def make_candidates(cfg: Config, target, radius_m: float) -> np.ndarray:
 
 # -- seen / unknown space ----------------------------------------------------------------------
 
-def region_of_interest(ijk: np.ndarray, voxel_size: float, scale: float, target=None) -> tuple:
-    """``(lo, hi)`` (3,) metres: a cube of side ``scale`` times the longest side of the voxels'
-    bounding box, centred on ``target`` (default: the box centre)."""
+def region_of_interest(ijk: np.ndarray, voxel_size: float, scale: float, target=None,
+                       origin=None) -> tuple:
+    """``(lo, hi)`` (3,) metres, world frame: a cube of side ``scale`` times the longest side
+    of the voxels' bounding box, centred on ``target`` (world; default: the box centre).
+    ``ijk`` are in the local grid of ``origin`` (None: the world's)."""
     if len(ijk) == 0:
         raise DataError("the band is empty: no region of interest to plan views for")
     lo = ijk.min(axis=0) * voxel_size
     hi = (ijk.max(axis=0) + 1) * voxel_size
+    if origin is not None:
+        lo, hi = points_in_world(lo, origin), points_in_world(hi, origin)
     centre = 0.5 * (lo + hi) if target is None or len(target) == 0 else np.asarray(target,
                                                                                   np.float64)
     half = 0.5 * scale * float((hi - lo).max())
@@ -197,11 +205,14 @@ class Planner:
     """Scores candidate views of a :class:`~bftaichi.posterior.Posterior` (module docstring).
 
     Args:
-        post: the posterior (``mean``, ``var``, ``weight``, ``ijk``, ``voxel_size``).
+        post: the posterior (``mean``, ``var``, ``weight``, ``ijk``, ``voxel_size``,
+            ``origin``).
         cfg: the run's configuration (observation model, ``tsdf.trunc_m``, ``nbv``).
         K: (3, 3) intrinsics and ``image_size`` (width, height) of the candidate camera.
         coverage: what the fused frames have seen; None scores known surface only.
         depth_range: ``(min, max)`` metres of the predicted depth.
+
+    Poses given to its methods are world poses ``T_W_C``.
     """
 
     def __init__(self, post, cfg: Config, K, image_size, coverage: CoverageGrid | None = None,
@@ -234,7 +245,7 @@ class Planner:
         self.s0 = (post.bootstrap_trunc_m or cfg.tsdf.bootstrap_trunc_m) ** 2 / 3.0
         self.rho = 0.0  # Omega voxels per seen cell that holds any
         if coverage is not None and self.omega.any():
-            centres = (post.ijk[self.omega] + 0.5) * vs
+            centres = points_in_world((post.ijk[self.omega] + 0.5) * vs, post.origin)
             self.rho = float(self.omega.sum()) / len(np.unique(coverage.cells_of(centres)))
 
     def predict_depth(self, T_W_C) -> np.ndarray:
@@ -242,15 +253,17 @@ class Planner:
         from kernels.raycast import raycast_depth
 
         band = self.post.band
+        T_L_C = pose_in_local(T_W_C, self.post.origin)
         return raycast_depth(band.block_keys, band.block_table, self.post.mean, self.observed,
-                             self.post.voxel_size, self.K, T_W_C, self.width, self.height,
+                             self.post.voxel_size, self.K, T_L_C, self.width, self.height,
                              self.depth_range[0], self.depth_range[1], stride=self.stride)
 
     def information(self, depth, T_W_C) -> np.ndarray:
         """(N,) float64 ``(A_v^T W_v A_v)_ii`` of the hypothetical frame ``depth`` at T_W_C,
         scaled to the real frames' stride."""
         self.observer.reset()
-        self.observer.integrate(depth, self.K, T_W_C, stride=self.stride)
+        self.observer.integrate(depth, self.K, pose_in_local(T_W_C, self.post.origin),
+                                stride=self.stride)
         return self.observer.diagonal() * self.info_scale
 
     def _prior_gain(self, T_W_C) -> float:
@@ -299,7 +312,8 @@ def plan(post, cfg: Config, frames, K, image_size, progress=None) -> dict:
     best first), ``best``, and the planner's settings (target, radius, region of interest,
     ``s0``, ``rho``)."""
     target = cfg.nbv.target or None
-    lo, hi = region_of_interest(post.ijk, post.voxel_size, cfg.nbv.roi_scale, target)
+    lo, hi = region_of_interest(post.ijk, post.voxel_size, cfg.nbv.roi_scale, target,
+                                post.origin)
     centre = 0.5 * (lo + hi)
     radius = cfg.nbv.radius_m
     if radius <= 0:
@@ -348,9 +362,9 @@ def candidates_around(post, n: int = 48, kind: str = "hemisphere", radius_scale:
     """``n`` candidate poses (n, 4, 4) looking at the centre of ``post``'s band from
     ``radius_scale`` times its bounding radius: ``kind`` ``hemisphere`` / ``sphere``
     (Fibonacci points between the elevations; ``sphere`` from -90 deg) or ``ring`` (at the
-    centre's height)."""
-    lo = post.ijk.min(axis=0) * post.voxel_size
-    hi = (post.ijk.max(axis=0) + 1) * post.voxel_size
+    centre's height). World poses."""
+    lo = points_in_world(post.ijk.min(axis=0) * post.voxel_size, post.origin)
+    hi = points_in_world((post.ijk.max(axis=0) + 1) * post.voxel_size, post.origin)
     centre, radius = 0.5 * (lo + hi), radius_scale * 0.5 * float(np.linalg.norm(hi - lo))
     if kind == "ring":
         return ring_candidates(centre, radius, n)
@@ -368,7 +382,8 @@ def rank(post, poses, K, image_size, config: Config | None = None, frames=None) 
     cfg = config or Config()
     coverage = None
     if frames is not None:
-        lo, hi = region_of_interest(post.ijk, post.voxel_size, cfg.nbv.roi_scale)
+        lo, hi = region_of_interest(post.ijk, post.voxel_size, cfg.nbv.roi_scale,
+                                    origin=post.origin)
         coverage = coverage_grid(cfg, lo, hi, post.voxel_size)
         for f in frames:
             coverage.mark(f.depth_m, f.K, f.T_W_C, stride=cfg.observation.stride)

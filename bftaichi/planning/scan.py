@@ -79,6 +79,7 @@ class _Scene:
 def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress) -> dict:
     """One closed loop: the views chosen and the metrics after each."""
     from ..evaluation.metrics import geometry_metrics
+    from ..geometry import mesh_in_local
     from ..reconstructor import Reconstructor
     from .nbv import Planner, coverage_grid
 
@@ -99,8 +100,9 @@ def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress
     for step in range(cfg.nbv.steps + 1):
         t0 = time.perf_counter()
         post = recon.solve(variance=policy == "bayes")
-        mesh = post.extract_mesh()
-        m = geometry_metrics(mesh, scene.gt, thresholds, cfg.eval.n_samples, cfg.eval.seed)
+        mesh = post.extract_mesh(local=True)  # metrics in the local frame, as a run's
+        m = geometry_metrics(mesh, mesh_in_local(scene.gt, post.origin), thresholds,
+                             cfg.eval.n_samples, cfg.eval.seed)
         record = {"views": len(used), "view": used[-1], F_KEY: m[F_KEY],
                   "recall@10mm": m["recall@10mm"],
                   "completeness_mm": 1000.0 * m["completeness_m"],
@@ -199,7 +201,7 @@ def _scan(cfg: Config, scene, policies, out: Path, progress, t_start: float) -> 
         f = scene.frame(c)
         recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name, keep=False)
     roi = region_of_interest(recon.voxels["ijk"], cfg.tsdf.voxel_size_m, cfg.nbv.roi_scale,
-                             scene.target)
+                             scene.target, recon.origin)
     results = {}
     for policy in policies:
         seeds = range(cfg.nbv.random_seeds) if policy == "random" else [0]

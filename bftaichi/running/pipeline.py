@@ -3,9 +3,11 @@ DESIGN.md section 4 outputs.
 
 ``run.stages = "full"`` (default) writes ``tsdf_mesh.ply``, ``mesh.ply`` (with per-vertex
 ``sigma`` and ``sigma_pos``), ``band.npz`` (band voxels: ``ijk, voxel_size, mean, var, cov,
-tsdf, weight``), ``report.json`` and
+tsdf, weight, origin``), ``report.json`` and
 ``config.toml``. ``"tsdf_only"`` stops after the bootstrap; its ``band.npz`` then holds every
-observed voxel's ``tsdf`` and ``weight``.
+observed voxel's ``tsdf`` and ``weight``. Meshes are in world coordinates, ``band.npz``'s
+``ijk`` in the local grid of ``origin`` (report.json ``origin_m``; see
+:mod:`bftaichi.reconstructor`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import trimesh
 from .. import backend
 from ..config import Config, parse_slice, save_config
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
+from ..geometry import mesh_in_local
 from ..io import ensure_out_dir, prepare_out_dir, write_json, write_mesh_ply, write_npz
 from ..posterior import mesh_attrs
 from ..reconstructor import Reconstructor
@@ -233,8 +236,10 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
             f"no surface was observed in {stats['frames']} frames ({stats['pixels']} valid depth "
             "pixels): check the depth range (scene.depth_min_m / depth_max_m), the depth scale, and "
             "that poses are T_W_C (camera-to-world), not T_C_W. No mesh was written.")
+    # Meshes and metrics in the grid's local frame (float32-exact; distances do not depend on
+    # the frame); the files and report.json in world coordinates (recon.origin added back).
     with timer("mesh"):
-        mesh = recon.tsdf_mesh()
+        mesh = recon.tsdf_mesh(local=True)
     if len(mesh.faces) == 0:
         raise NoSurfaceError(
             f"{len(voxels['ijk'])} voxels were observed but no cell has all 8 corners with weight >= "
@@ -255,7 +260,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                 "raise solver.maxiter, check the scene, or run without --strict (the mesh is "
                 "then written and flagged in report.json)")
         with timer("mesh"):
-            post_mesh = post.extract_mesh()  # step 7
+            post_mesh = post.extract_mesh(local=True)  # step 7
     timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
     metrics, distances = {}, {}
     uncertainty = band_unc = None
@@ -265,21 +270,23 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
 
         e = cfg.eval
         with timer("metrics"):
+            gt_local = mesh_in_local(gt, recon.origin)
             for name, m in (("tsdf_mesh.ply", mesh), ("mesh.ply", post_mesh)):
                 if m is not None:
-                    distances[name] = surface_distances(m, gt, e.n_samples, e.seed)
+                    distances[name] = surface_distances(m, gt_local, e.n_samples, e.seed)
                     metrics[name] = metrics_from_distances(distances[name], e.thresholds_mm,
                                                            len(m.faces))
             if post is not None:
-                uncertainty = vertex_uncertainty(post_mesh, gt)
+                uncertainty = vertex_uncertainty(post_mesh, gt_local)
                 band_unc = band_uncertainty(post, gt, e.near_voxels, e.seed)
     with timer("write"):
         colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None
-        write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors)
+        write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors,
+                       origin=recon.origin)
         vs32 = np.float32(cfg.tsdf.voxel_size_m)
         if post is None:
             write_npz(out / "band.npz", ijk=voxels["ijk"], voxel_size=vs32, tsdf=voxels["tsdf"],
-                      weight=voxels["weight"])
+                      weight=voxels["weight"], origin=recon.origin)
         else:
             post_colors = None
             if colors is not None and len(post_mesh.vertices):
@@ -292,7 +299,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                     np.uint8)
             write_mesh_ply(out / "mesh.ply", post_mesh.vertices, post_mesh.faces,
                            vertex_attrs=mesh_attrs(post_mesh),
-                           vertex_colors=post_colors)
+                           vertex_colors=post_colors, origin=recon.origin)
             write_npz(out / "band.npz", **post.band_arrays())
         save_config(cfg, out / "config.toml")
     report = {
@@ -325,6 +332,9 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                      if post.variance.get("n_not_converged") else [])),
         "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m,
                  "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
+        # world position of the local grid (band.npz ijk); meshes, cameras and NBV poses are
+        # world coordinates
+        "origin_m": recon.origin.tolist(),
         "metrics": metrics,
         "uncertainty": uncertainty,
         "band_uncertainty": band_unc,

@@ -24,6 +24,7 @@ from kernels.observe import accumulator_parts
 from kernels.layout import block_key_steps as _block_steps
 
 from ..errors import BftaichiError
+from ..geometry import local_origin, points_in_local
 
 __all__ = ["ResourceError", "PeakRSS", "estimate_memory", "memory_budget", "check_memory",
            "available_memory", "suggest_voxel_size"]
@@ -183,8 +184,9 @@ def _frame_points(frame, stride: int, depth_max_m: float) -> tuple[np.ndarray, n
 
 
 class SceneSample:
-    """World points of a subsample of the frames, read once; :meth:`measure` voxelises them
-    at any voxel size (cheap), so a voxel size can be searched without reading frames again.
+    """Points of a subsample of the frames (in the TSDF's local frame, ``origin``), read once;
+    :meth:`measure` voxelises them at any voxel size (cheap), so a voxel size can be searched
+    without reading frames again.
 
     ``n_frames`` frames evenly spaced over the sequence (all of a shorter one), every
     ``stride``-th pixel: the stride keeps neighbouring rays at ``depth_max_m`` within 2 voxels of
@@ -198,7 +200,8 @@ class SceneSample:
         self.picks = (np.unique(np.linspace(0, n - 1, min(n, n_frames)).round().astype(int))
                       if n else np.zeros(0, int))
         self.stride = 1
-        self.views = []  # (points_W (P, 3), rays_W (P, 3) at camera z = 1, z (P,), centre (3,))
+        self.views = []  # (points_L (P, 3), rays_W (P, 3) at camera z = 1, z (P,), centre_L (3,))
+        self.origin = np.zeros(3)  # of the local frame L (the first sampled frame's)
         for j, i in enumerate(self.picks):
             frame = frames[int(i)]
             if j == 0:
@@ -206,7 +209,11 @@ class SceneSample:
                 f = float(min(frame.K[0][0], frame.K[1][1]))
                 self.stride = max(1, int(f * 2 * voxel_size_m / depth_max_m),
                                   math.ceil(math.sqrt(H * W / SAMPLE_PIXELS)))
-            view = _frame_points(frame, self.stride, depth_max_m)
+            if j == 0:  # the TSDF's local frame (bftaichi.geometry.local_origin): block keys
+                self.origin = local_origin(np.asarray(frame.T_W_C)[:3, 3], voxel_size_m)
+            points, rays, z, centre = _frame_points(frame, self.stride, depth_max_m)
+            view = (points_in_local(points, self.origin), rays, z,
+                    points_in_local(centre, self.origin))
             if len(view[2]):
                 self.views.append(view)
                 self._f = float(min(frame.K[0][0], frame.K[1][1]))

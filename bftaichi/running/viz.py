@@ -29,7 +29,9 @@ and builds the page itself (meshcat's own ``create_command`` and viewer bundle),
 server, and it kills it (and waits for it) however the command ends: return, error, Ctrl-C,
 SIGTERM or SIGHUP; if the command is killed outright, the server gets SIGKILL from the kernel
 (``PR_SET_PDEATHSIG``). Arrays go to meshcat as
-3xN float32, faces as uint32.
+3xN float32, faces as uint32. Float32 cannot hold world coordinates far from the origin, so the
+scene is shown in the run's local frame: world minus ``origin_m`` of report.json (or
+``origin`` of band.npz; zeros for a scene near the world origin, where nothing moves).
 """
 
 from __future__ import annotations
@@ -142,7 +144,21 @@ def _read_outputs(out: Path) -> dict:
         raise DataError(f"{out} holds neither mesh.ply nor tsdf_mesh.ply: nothing to show")
     p = out / "band.npz"
     data["band"] = dict(np.load(p)) if p.exists() else None
+    report, band = data["report"] or {}, data["band"] or {}
+    data["origin"] = np.asarray(report.get("origin_m", band.get("origin", np.zeros(3))),
+                                np.float64)
+    for name in ("mesh.ply", "tsdf_mesh.ply"):  # world -> the local frame (module docstring)
+        if data[name] is not None and np.any(data["origin"]):
+            v, f, extra = data[name]
+            data[name] = ((v - data["origin"]).astype(np.float32), f, extra)
     return data
+
+
+def _local_poses(poses, origin) -> np.ndarray:
+    """World poses (n, 4, 4) in the local frame the scene is shown in (float64)."""
+    poses = np.array(poses, np.float64).reshape(-1, 4, 4)
+    poses[:, :3, 3] -= origin
+    return poses
 
 
 def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False) -> dict:
@@ -182,7 +198,7 @@ def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False)
     report = d["report"] or {}
     cams = report.get("cameras")
     if cams and cams.get("poses"):
-        poses = np.asarray(cams["poses"], np.float64)
+        poses = _local_poses(cams["poses"], d["origin"])
         pts, col = _frustums(poses, np.asarray(cams["K"]), cams["image_size"], 0.15 * scale,
                              [(0.2, 0.4, 1.0)] * len(poses))
         root["cameras"].set_object(g.LineSegments(g.PointsGeometry(pts, col),
@@ -190,7 +206,7 @@ def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False)
         info["drawn"].append(f"{len(poses)} camera frustums")
     if d["nbv"] is not None and cams:
         cand = d["nbv"]["candidates"]
-        poses = np.asarray([c["pose"] for c in cand], np.float64)
+        poses = _local_poses([c["pose"] for c in cand], d["origin"])
         u = np.array([c["utility"] for c in cand])
         col = _colormap(u, float(u.min()), float(u.max()), "plasma")
         best = int(np.argmin([c["rank"] for c in cand]))

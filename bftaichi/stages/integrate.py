@@ -7,6 +7,11 @@ Usage::
     for frame in bf.open_dataset("path/to/7scenes-seq"):
         vol.integrate(frame.depth_m, frame.K, frame.T_W_C, name=frame.name)
     mesh = vol.extract_mesh()          # trimesh.Trimesh, world frame, metres
+
+Coordinates: poses are world poses; the voxel grid (``export()['ijk']``) lives in a local frame,
+voxel ``ijk`` at world ``vol.origin + (ijk + 0.5) * voxel_size_m`` (float64 origin, zeros for a
+scene near the world origin; :func:`bftaichi.geometry.local_origin`), so a georeferenced or
+kilometre-long scene fits the block map and float32.
 """
 
 from __future__ import annotations
@@ -18,12 +23,22 @@ import trimesh
 
 from dataclasses import dataclass
 
+from kernels.layout import BLOCK
+
 from .. import backend
 from ..checks import check_range
-from ..errors import BftaichiError, ConfigError, NoSurfaceError
+from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
+from ..geometry import MAP_VOXELS, local_origin, points_in_world, pose_in_local
 from ..geometry import check_depth, check_K, check_pose
 
-__all__ = ["TSDFConfig", "TSDFVolume", "auto_activation_stride"]
+__all__ = ["TSDFConfig", "TSDFVolume", "auto_activation_stride", "MAX_OUTSIDE"]
+
+MAX_OUTSIDE = 0.01
+"""Share of a frame's valid pixels whose surface point (at the measured depth, local frame) may
+lie outside the TSDF's block map before :meth:`TSDFVolume.integrate` refuses the frame with a
+DataError. Up to it, the activation samples outside are dropped and counted (``stats()``
+``out_of_range_samples``, report.json ``counts.out_of_range_samples``), as they always were:
+stray far returns and flying pixels do not stop a run."""
 
 
 @dataclass
@@ -89,6 +104,13 @@ class TSDFVolume:
         arch: Taichi backend used if Taichi is not initialised yet.
 
     Integration is deterministic: the same frames give bitwise the same volume.
+
+    Attributes:
+        origin: (3,) float64 world position of the grid's origin, metres, set by the first
+            :meth:`integrate` (:func:`bftaichi.geometry.local_origin`: zeros when its camera is
+            near the world origin, else the block corner nearest it). Voxel ``ijk`` has world
+            centre ``origin + (ijk + 0.5) * voxel_size_m``; poses are subtracted ``origin`` in
+            float64 before the kernels see them.
     """
 
     def __init__(self, voxel_size_m: float, trunc_m: float, *, max_weight: float = 1e4,
@@ -116,6 +138,7 @@ class TSDFVolume:
         self.n_frames = 0
         self.n_pixels = 0  # valid depth pixels integrated
         self.n_empty_frames = 0  # frames that updated no voxel
+        self.origin = np.zeros(3)
 
     @property
     def kernel(self):
@@ -133,6 +156,9 @@ class TSDFVolume:
             T_W_C: (4, 4) camera-to-world pose.
             rgb: optional (H, W, 3) uint8 colour registered to the depth.
             name: used in error messages.
+
+        Raises DataError when more than :data:`MAX_OUTSIDE` of the frame's valid pixels see
+        surface outside the block map (:meth:`_check_in_map`).
         """
         depth = check_depth(depth_m, name)
         K = check_K(K, name)
@@ -148,24 +174,79 @@ class TSDFVolume:
             rgb = np.ascontiguousarray(rgb)
         if self._stride is None:
             self._stride = auto_activation_stride(K, self.voxel_size_m, self.depth_max_m)
+        if self.n_frames == 0:
+            self.origin = local_origin(T_W_C[:3, 3], self.voxel_size_m)
+        T_L_C = pose_in_local(T_W_C, self.origin)
         n_valid = int(valid.sum())
-        updates = self._vol.integrate(depth, K, T_W_C, rgb=rgb, activation_stride=self._stride)
+        out_before = self._vol.stats()["out_of_range_samples"]
+        updates = self._vol.integrate(depth, K, T_L_C, rgb=rgb, activation_stride=self._stride)
         self.n_frames += 1
         self.n_pixels += n_valid
         if updates == 0:
             self.n_empty_frames += 1
+        if self._vol.stats()["out_of_range_samples"] > out_before:
+            self._check_in_map(depth, K, T_L_C, name)
         return updates
 
+    def _check_in_map(self, depth: np.ndarray, K: np.ndarray, T_L_C: np.ndarray,
+                      name: str) -> None:
+        """After a frame whose activation left the block map: DataError when more than
+        :data:`MAX_OUTSIDE` of its valid pixels' surface points lie outside it. The message
+        gives the extent of the scene so far (the allocated blocks and the frame's points
+        between their 0.5 and 99.5 percentiles, so stray returns do not count) along its
+        longest axis, and what the map holds at this voxel size."""
+        vs = self.voxel_size_m
+        v, u = np.nonzero(depth > 0)
+        if len(v) == 0:
+            return
+        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(len(u))], 1)
+        points = (rays * depth[v, u].astype(np.float64)[:, None]) @ T_L_C[:3, :3].T + T_L_C[:3, 3]
+        half = MAP_VOXELS // 2 * vs
+        outside = np.any((points < -half) | (points >= half), axis=1)
+        share = float(np.count_nonzero(outside)) / len(points)
+        if share <= MAX_OUTSIDE:
+            return
+        lo, hi = np.percentile(points, [0.5, 99.5], axis=0)
+        blocks = self._vol.blocks()
+        if len(blocks):
+            block_m = BLOCK * vs
+            lo = np.minimum(lo, blocks.min(axis=0) * block_m)
+            hi = np.maximum(hi, (blocks.max(axis=0) + 1) * block_m)
+        extent = hi - lo
+        a = int(np.argmax(extent))
+        span = MAP_VOXELS * vs
+        centre = ("the world origin" if not np.any(self.origin) else
+                  f"the first frame's camera (local origin {np.round(self.origin, 3).tolist()})")
+        where = (f"{name}: {share:.0%} of its valid pixels see surface outside the TSDF's block "
+                 f"map, which holds {MAP_VOXELS} voxels = {span:g} m per axis at "
+                 f"tsdf.voxel_size_m = {vs:g} m, centred on {centre}")
+        if extent[a] > span:
+            raise DataError(
+                f"{where}. The scene spans {extent[a]:.1f} m along {'xyz'[a]}: it does not fit. "
+                f"Use a voxel of at least {extent[a] / MAP_VOXELS:.3g} m (tsdf.voxel_size_m, "
+                f"--voxel), or split the scene into parts under {span:g} m")
+        reach = float(np.abs(points[outside]).max())
+        raise DataError(
+            f"{where}. The scene spans {extent[a]:.1f} m along {'xyz'[a]}, which would fit, "
+            f"but this frame sees surface {reach:.1f} m from that centre (more than "
+            f"{half:g} m): start the sequence with a frame nearer the middle of the scene "
+            "(scene.frames), use a larger voxel or a smaller scene.depth_max_m, or split the "
+            "scene")
+
     def export(self) -> dict[str, np.ndarray]:
-        """Observed voxels sorted by ijk: ``ijk`` (N,3) int32, ``tsdf`` (N,) float32 metres
-        (clamped to +-trunc_m), ``weight`` (N,) float32 [, ``rgb`` (N,3) float32 0..255]."""
+        """Observed voxels sorted by ijk: ``ijk`` (N,3) int32 in the local grid (world centre
+        ``origin + (ijk + 0.5) * voxel_size_m``), ``tsdf`` (N,) float32 metres (clamped to
+        +-trunc_m), ``weight`` (N,) float32 [, ``rgb`` (N,3) float32 0..255]."""
         return self._vol.export()
 
-    def extract_mesh(self, min_weight: float = 1.0, voxels: dict | None = None) -> trimesh.Trimesh:
+    def extract_mesh(self, min_weight: float = 1.0, voxels: dict | None = None, *,
+                     local: bool = False) -> trimesh.Trimesh:
         """Marching cubes at tsdf = 0 over cells whose 8 corners have weight >= ``min_weight``.
 
-        Returns a world-frame mesh with outward (toward free space) face orientation. Raises
-        NoSurfaceError when no voxel was observed. ``voxels`` reuses an :meth:`export` result.
+        Returns a mesh with outward (toward free space) face orientation, in world coordinates
+        (float64 ``origin + vertex``), or with ``local`` in the grid's local frame (the float32
+        marching-cubes vertices). Raises NoSurfaceError when no voxel was observed. ``voxels``
+        reuses an :meth:`export` result.
         """
         from .surface import extract_mesh, sample_field
 
@@ -180,6 +261,8 @@ class TSDFVolume:
             cols = [sample_field(v["ijk"], v["rgb"][:, c], v["weight"] > 0, self.voxel_size_m,
                                  vertices) for c in range(3)]
             colors = np.clip(np.nan_to_num(np.stack(cols, axis=1)), 0, 255).astype(np.uint8)
+        if not local:
+            vertices = points_in_world(vertices, self.origin)
         return trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)
 
     def stats(self) -> dict[str, int]:
