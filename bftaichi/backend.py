@@ -17,10 +17,13 @@ import sys
 
 from .errors import BftaichiError
 
-__all__ = ["init", "is_initialized", "current_arch"]
+__all__ = ["init", "is_initialized", "current_arch", "effective_arch"]
 
 _ARCHES = ("cpu", "cuda", "vulkan", "metal", "gpu")
-_state: dict[str, str | None] = {"arch": None}
+_GPU_ARCHES = ("cuda", "vulkan", "metal")
+"""What ``gpu`` tries, in order. Not Taichi's own ``ti.gpu`` list: it also probes OpenGL, and
+that probe crashes the process (segmentation fault) on a machine without a display."""
+_state: dict[str, str | None] = {"arch": None, "effective": None}
 
 
 def init(arch: str = "cpu", *, debug: bool = False, offline_cache: bool = True,
@@ -33,24 +36,37 @@ def init(arch: str = "cpu", *, debug: bool = False, offline_cache: bool = True,
         offline_cache: keep compiled kernels on disk across runs (recommended).
         num_threads: CPU threads (default: all cores).
 
-    Calling it again with the same arch is a no-op. A different arch resets Taichi, which
-    invalidates every field allocated before: do it before creating volumes.
+    Taichi falls back to the CPU when the requested GPU backend is unavailable (with a warning
+    of its own on stderr): :func:`effective_arch` says what runs.
+
+    Calling it again with the same arch, or with the arch that runs, is a no-op, and so is a
+    GPU arch none of whose backends is available while Taichi runs on the CPU (it would fall
+    back to the CPU it runs on). A different arch resets Taichi, which invalidates every field
+    allocated before: do it before creating volumes.
     """
     if arch not in _ARCHES:
         raise BftaichiError(f"unknown arch {arch!r}; choose one of {', '.join(_ARCHES)}")
-    if _state["arch"] == arch:
+    if arch in (_state["arch"], _state["effective"]):
         return
     # No network at run time: Taichi otherwise phones home for a version check.
     os.environ["TI_SKIP_VERSION_CHECK"] = "ON"
     import taichi as ti
 
-    kwargs = dict(arch=getattr(ti, arch), offline_cache=offline_cache, debug=debug,
+    names = _GPU_ARCHES if arch == "gpu" else (arch,)
+    wanted = [getattr(ti, a) for a in names] if arch == "gpu" else getattr(ti, arch)
+    if _state["effective"] == "cpu" and not any(
+            ti.lang.misc.is_arch_supported(getattr(ti, a)) for a in names):
+        _state["arch"] = arch  # the fallback Taichi would take: keep its fields alive
+        return
+    kwargs = dict(arch=wanted, offline_cache=offline_cache, debug=debug,
                   default_fp=ti.f32, default_ip=ti.i32, random_seed=0, log_level=ti.WARN)
     if num_threads is not None:
         kwargs["cpu_max_num_threads"] = int(num_threads)
     with _stdout_to_stderr():  # Taichi prints "[Taichi] Starting on arch=..." on stdout
         ti.init(**kwargs)
     _state["arch"] = arch
+    ran = ti.lang.impl.current_cfg().arch
+    _state["effective"] = "cpu" if ran in (ti.x64, ti.arm64) else ran.name
 
 
 @contextlib.contextmanager
@@ -82,4 +98,11 @@ def is_initialized() -> bool:
 
 
 def current_arch() -> str | None:
+    """The arch :func:`init` was last asked for (None before it ran)."""
     return _state["arch"]
+
+
+def effective_arch() -> str | None:
+    """The backend Taichi runs on: ``cpu``, ``cuda``, ``vulkan`` or ``metal`` (None before
+    :func:`init`); ``cpu`` after a fallback from an unavailable GPU backend."""
+    return _state["effective"]

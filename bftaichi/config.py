@@ -370,8 +370,8 @@ class RunConfig:
     or ``tsdf_only`` (the bootstrap alone, e.g. as a fast baseline)."""
 
     strict: bool = False
-    """Refuse to write ``mesh.ply`` when the MAP solve did not converge (an error, exit code 2).
-    Without it the mesh is written and ``report.json`` flags ``map_not_converged``."""
+    """Refuse (exit code 2) input failing a check of :mod:`bftaichi.plausibility` (else a warning)
+    and a MAP solve that did not converge (else ``report.json`` flags ``map_not_converged``)."""
 
     plots: bool = True
     """Write diagnostic PNGs into ``plots/`` at the end of a run (``bftaichi.running.plots``:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -22,6 +23,8 @@ class Frame:
         K: (3, 3) float64 pinhole intrinsics.
         T_W_C: (4, 4) float64 camera-to-world pose.
         rgb: optional (H, W, 3) uint8 colour registered to the depth image.
+        depth_path: the depth file a recorded frame was read from (None for rendered or
+            in-memory frames), for messages and :mod:`bftaichi.plausibility`'s checks.
     """
 
     index: int
@@ -30,6 +33,7 @@ class Frame:
     K: np.ndarray
     T_W_C: np.ndarray
     rgb: np.ndarray | None = None
+    depth_path: Path | None = None
 
 
 def clean_depth(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float) -> np.ndarray:

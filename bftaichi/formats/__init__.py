@@ -40,7 +40,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import ConfigError, DataError
-from .base import PRINCIPAL_POINT_TOLERANCE, Dataset
+from .base import Dataset
 from .bfsdf import BFSDFDataset
 from .co3d import CO3DDataset, pytorch3d_to_opencv
 from .folder import FolderDataset
@@ -63,7 +63,6 @@ __all__ = [
     "FolderDataset",
     "FORMATS",
     "POSE_CONVENTIONS",
-    "PRINCIPAL_POINT_TOLERANCE",
     "detect_format",
     "open_dataset",
     "pytorch3d_to_opencv",

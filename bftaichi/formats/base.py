@@ -6,7 +6,7 @@ frame's image size and colour, and cleans its depth with :func:`~bftaichi.frame.
 
 Any layout may hold a ``gt_mesh.ply`` next to the frames; :attr:`Dataset.gt_mesh_path` points to it.
 Without an image size in the intrinsics, the first frame read fixes it, and its principal point
-must lie near the image centre (within :data:`PRINCIPAL_POINT_TOLERANCE` of the width/height),
+must lie inside it and not fit twice or half its size better (:func:`principal_point_misfit`),
 which catches intrinsics written for another resolution.
 """
 
@@ -26,10 +26,47 @@ from ..frame import Frame, clean_depth
 from .readers import check_folder, first_file, folder_listing, read_rgb
 
 
-PRINCIPAL_POINT_TOLERANCE = 0.2
-"""How far (fraction of the width / height) the principal point may be from the image centre when
-the intrinsics do not give the image size. Real cameras are within a few percent; intrinsics for
-twice or half the resolution are 25 % or 50 % off."""
+def principal_point_misfit(K, width: int, height: int) -> tuple[str, tuple[int, int]] | None:
+    """Whether the principal point of ``K`` says the image is not ``width`` x ``height``.
+
+    An exact rule, per axis, with pixel centres at integers (an image of ``n`` pixels spans
+    ``[-0.5, n - 0.5]``, centre ``(n - 1) / 2``):
+
+    - ``"outside"``: ``(cx, cy)`` lies outside the image;
+    - ``"transposed"``: ``cx`` is nearer the centre of the height than of the width *and*
+      ``cy`` nearer the centre of the width than of the height (K is for ``height x width``);
+    - ``"scaled"``: on both axes the principal point is nearer the centre of the image twice
+      (or half) the size than of this one (K is for another resolution).
+
+    Both axes must agree, so a camera whose principal point is far off centre along one axis
+    (a crop, a shifted lens) passes; each rule needs the principal point off centre by a
+    quarter of the difference of the sizes on both axes at once. A square image is never
+    "transposed". Returns None when the size fits, else ``(kind, (W, H))`` with the size K
+    fits (for ``"outside"`` and ``"scaled"``: ``2 c + 1`` rounded, what a centred principal
+    point implies).
+    """
+    cx, cy = float(K[0][2]), float(K[1][2])
+    w, h = int(width), int(height)
+
+    def nearer(c, n_alt, n):  # c nearer the centre of n_alt pixels than of n pixels
+        return abs(c - (n_alt - 1) / 2) < abs(c - (n - 1) / 2)
+
+    implied = (max(1, round(2 * cx + 1)), max(1, round(2 * cy + 1)))
+    if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5):
+        return "outside", implied
+    if w != h and nearer(cx, h, w) and nearer(cy, w, h):
+        return "transposed", (h, w)
+    for f in (2.0, 0.5):
+        if nearer(cx, f * w, w) and nearer(cy, f * h, h):
+            return "scaled", implied
+    return None
+
+
+def misfit_text(misfit: tuple[str, tuple[int, int]]) -> str:
+    """What a :func:`principal_point_misfit` says of the principal point, for messages."""
+    kind, (w, h) = misfit
+    return {"outside": "lies outside it", "scaled": f"fits an image of about {w}x{h}",
+            "transposed": f"fits a {w}x{h} image"}[kind]
 
 
 class Dataset(ABC):
@@ -150,7 +187,7 @@ class Dataset(ABC):
                             f"{depth_path.name} is {depth_raw.shape[1]}x{depth_raw.shape[0]}")
         depth_m = clean_depth(depth_raw, self.depth_min_m, self.depth_max_m)
         return Frame(index=j, name=self._names[j], depth_m=depth_m, K=self._frame_K(j).copy(),
-                     T_W_C=T_W_C, rgb=rgb)
+                     T_W_C=T_W_C, rgb=rgb, depth_path=depth_path)
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
@@ -195,14 +232,16 @@ class Dataset(ABC):
 
     def _check_size(self, shape: tuple[int, ...], depth_path: Path) -> None:
         """Depth images must all have ``image_size``; the first frame read fixes it if unknown,
-        provided the principal point is near its centre (:data:`PRINCIPAL_POINT_TOLERANCE`)."""
+        provided K's principal point lies inside it and fits no other resolution better
+        (:func:`principal_point_misfit`; a transposed image is left to
+        :mod:`bftaichi.plausibility`, which warns, or refuses with ``run.strict``)."""
         h, w = shape
         if self.image_size is None:
             cx, cy = self.K[0, 2], self.K[1, 2]
-            tol = PRINCIPAL_POINT_TOLERANCE
-            if abs(cx - 0.5 * (w - 1)) > tol * w or abs(cy - 0.5 * (h - 1)) > tol * h:
+            misfit = principal_point_misfit(self.K, w, h)
+            if misfit is not None and misfit[0] != "transposed":
                 raise DataError(f"{depth_path}: depth image is {w}x{h} (WxH) but the principal point "
-                                f"(cx, cy) = ({cx:g}, {cy:g}) of the intrinsics is far from its centre: "
+                                f"(cx, cy) = ({cx:g}, {cy:g}) of the intrinsics {misfit_text(misfit)}: "
                                 f"the intrinsics are for another image size")
             self.image_size = (w, h)
             self._size_source = f"the first frame read ({depth_path.name})"

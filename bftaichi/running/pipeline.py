@@ -194,13 +194,18 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
 
     with timer("memory_check"):  # before the output folder: a refused run writes nothing
         memory = check_memory(cfg, frames)
+    from ..plausibility import check_inputs
+
+    with timer("checks"):  # also starts Taichi, and sets cfg.run.arch to the backend that runs
+        checks = check_inputs(cfg, frames)  # warns; with run.strict, a refusal writes nothing
     timer.rss = PeakRSS()
     out = ensure_out_dir(out_dir)
     with folder.hold(out):  # one writer at a time; the check below cannot race
         prepare_out_dir(out, overwrite=overwrite)
         staging = folder.Staging(out)
         try:
-            report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress, memory)
+            report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress, memory,
+                                 checks)
             timer.current = "commit"
             staging.commit(remove=RUN_OUTPUTS + ("failed_run.json",))
         except BaseException as e:
@@ -211,8 +216,9 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
 
 
 def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool,
-                memory: dict):
-    """The stages of :func:`run`, writing into the staging folder ``out``."""
+                memory: dict, checks):
+    """The stages of :func:`run`, writing into the staging folder ``out``; ``checks``: what
+    :func:`~bftaichi.plausibility.check_inputs` found."""
     with timer("init"):
         backend.init(cfg.run.arch)
     recon = Reconstructor(cfg)
@@ -341,8 +347,10 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
         "cameras": cameras,
         "has_ground_truth": gt is not None,
         "memory": {"estimate": memory, "peak_rss": timer.rss.to_dict() if timer.rss else None},
-        "machine": {"python": platform.python_version(), "arch": cfg.run.arch,
-                    "cpus": os.cpu_count()},
+        "machine": {"python": platform.python_version(), "arch": checks.arch,
+                    "arch_requested": checks.arch_requested, "cpus": os.cpu_count()},
+        "warnings": checks.warnings(),
+        "checks": checks.measured,
         "config": cfg.to_dict(),
     }
     if post is not None and cfg.nbv.enabled:
