@@ -48,11 +48,11 @@ def cli():
 _SUMMARY_KEYS = ("chamfer_l2", "accuracy_m", "completeness_m")
 
 
-def _print_summary(out: Path, verbose: bool = False) -> None:
-    """One screen about a run, built from ``out/report.json``."""
+def _print_summary(out: Path, report: dict, verbose: bool = False) -> None:
+    """One screen about the run just made in ``out``, from the report it returned (what it
+    wrote as report.json; not read back)."""
     from .evaluation.metrics import format_table
 
-    report = json.loads((out / "report.json").read_text())
     c, s = report["counts"], report["seconds"]
     click.echo(f"scene {report['scene']}: {c['frames']} frames, {c['pixels_used']:,} depth pixels, "
                f"{c['observed_voxels']:,} observed voxels in {c['blocks']:,} blocks")
@@ -166,9 +166,9 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
     cfg = load_config(scene, _overrides(arch, sets) + (["run.strict=true"] if strict else []))
     out = Path(out or Path("out") / cfg.scene.name)
     with _warnings_on_stderr():
-        run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
+        report = run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
     if not quiet:
-        _print_summary(out, verbose)
+        _print_summary(out, report, verbose)
 
 
 @cli.command()
@@ -220,9 +220,9 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
                                                gt_mesh) + extra + _overrides(arch, sets))
     with _warnings_on_stderr():
-        run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
+        report = run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
-        _print_summary(Path(out), verbose)
+        _print_summary(Path(out), report, verbose)
 
 
 def _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh) -> list[str]:
@@ -365,7 +365,7 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verb
     from .errors import DataError
     from .io import write_json
     from .planning.nbv import nbv_summary, rank_run
-    from .running.pipeline import open_frames
+    from .running.pipeline import open_frames, read_report
     from .posterior import Posterior
 
     out = Path(out_dir)
@@ -397,12 +397,7 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verb
         frames = open_frames(cfg)
         backend.init(cfg.run.arch)
         report_path = out / "report.json"
-        report = None
-        if report_path.exists():
-            try:
-                report = _json.loads(report_path.read_text())
-            except ValueError:
-                raise DataError(f"{report_path} is not valid JSON") from None
+        report = read_report(report_path) if report_path.exists() else None
         with folder.staged(out) as staging:
             result = rank_run(post, cfg, frames, staging, progress=bar)
             if report is not None:
@@ -544,13 +539,15 @@ def view(out_dir, html_file, band, max_faces, timeout):
 @click.option("--samples", type=int, default=200000, show_default=True,
               help="Points sampled on each surface.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Sampling seed.")
-@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table (strict "
+              "JSON: a distance that is not defined, inf in the table, is null).")
 def eval_cmd(pred, gt, thresholds, samples, seed, as_json):
     """Geometry metrics of mesh PRED against ground-truth mesh GT.
 
     Chamfer L2 (mean squared distance both ways), accuracy (mean PRED->GT distance), completeness
     (mean GT->PRED distance), and precision / recall / F-score at each threshold, from
-    area-weighted surface samples with a fixed seed.
+    area-weighted surface samples with a fixed seed. A PRED without surface (no triangle of
+    positive area) has no distances: inf in the table, null in --json, and F-scores 0.
 
     \b
     Example:
@@ -558,15 +555,16 @@ def eval_cmd(pred, gt, thresholds, samples, seed, as_json):
     """
     from .config import EvalConfig
     from .evaluation.metrics import format_table, geometry_metrics, load_mesh
+    from .io import to_json
 
     try:
         ts = [float(t) for t in thresholds.split(",") if t.strip()]
     except ValueError:
         raise BftaichiError(f"--thresholds {thresholds!r}: expected numbers like 5,10,20") from None
     EvalConfig(thresholds_mm=ts, n_samples=samples, seed=seed).check()
-    m = geometry_metrics(load_mesh(pred), load_mesh(gt), ts, samples, seed)
+    m = geometry_metrics(load_mesh(pred), load_mesh(gt, surface=True), ts, samples, seed)
     if as_json:
-        click.echo(json.dumps(m, indent=2))
+        click.echo(to_json(m))
     else:
         click.echo(format_table({Path(pred).name: m}))
 

@@ -15,6 +15,7 @@ and ``~`` are expanded. The resolved configuration is saved as ``config.toml`` n
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import os
@@ -547,10 +548,12 @@ def resolve_paths(cfg: Config, base: Path) -> Config:
 def load_config(path: str | os.PathLike | None = None, overrides: typing.Sequence[str] = ()) -> Config:
     """Defaults, then the scene file ``path`` (if any), then ``overrides``; validated.
 
-    Raises ConfigError for a missing or malformed scene file, unknown keys and bad values.
+    Raises ConfigError for a missing or malformed scene file, unknown keys and bad values; a
+    bad value of the scene file itself (not of an override) is reported with the file's name.
     """
     cfg = Config()
     base = Path.cwd()
+    from_file = None
     if path is not None:
         path = Path(path)
         if not path.is_file():
@@ -563,6 +566,7 @@ def load_config(path: str | os.PathLike | None = None, overrides: typing.Sequenc
             raise ConfigError(f"scene file {path} cannot be read: {e}") from None
         apply_dict(cfg, data, origin=str(path))
         resolve_paths(cfg, path.resolve().parent)
+        from_file = copy.deepcopy(cfg)
     sections = {f.name for f in dataclasses.fields(cfg)}
     for text in overrides:
         section, key, value = parse_override(text)
@@ -572,7 +576,21 @@ def load_config(path: str | os.PathLike | None = None, overrides: typing.Sequenc
             value = text.split("=", 1)[1].strip()
         _set(cfg, section, key, value)
     resolve_paths(cfg, Path.cwd())
-    return cfg.check()
+    try:
+        return cfg.check()
+    except ConfigError as e:
+        if from_file is not None and _check_error(from_file) == str(e):
+            raise ConfigError(f"{e} in {path}") from None  # the file's value, not an override's
+        raise
+
+
+def _check_error(cfg: Config) -> str | None:
+    """The message of ``cfg.check()``'s ConfigError, or None if it passes."""
+    try:
+        cfg.check()
+    except ConfigError as e:
+        return str(e)
+    return None
 
 
 def parse_slice(text: str, key: str = "frames") -> slice:

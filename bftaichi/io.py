@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import BftaichiError
+from .errors import BftaichiError, DataError
 
-__all__ = ["atomic_write_bytes", "writable_target", "write_json", "write_npz", "write_mesh_ply",
-           "read_mesh_ply", "prepare_out_dir", "ensure_out_dir"]
+__all__ = ["atomic_write_bytes", "writable_target", "to_json", "write_json", "write_npz",
+           "write_mesh_ply", "read_mesh_ply", "prepare_out_dir", "ensure_out_dir"]
 
 
 _UMASK = os.umask(0)
@@ -74,19 +74,40 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
-def write_json(path: str | os.PathLike, obj) -> None:
-    """Pretty JSON (numpy scalars and arrays converted), written atomically."""
+def _finite_or_null(o):
+    """``o`` with numpy scalars and arrays as Python numbers and lists, and every NaN / inf
+    float as None (dict keys and other values unchanged)."""
+    if isinstance(o, float):  # also np.float64
+        return o if np.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite_or_null(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite_or_null(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _finite_or_null(o.tolist())
+    if isinstance(o, np.generic):
+        return _finite_or_null(o.item())
+    return o
+
+
+def to_json(obj, indent: int | None = 2) -> str:
+    """``obj`` as strict JSON (RFC 8259) text: numpy scalars and arrays as numbers and lists,
+    paths as strings, and NaN / inf as ``null``. JSON has no non-finite numbers (Python's
+    ``json`` would write ``NaN`` / ``Infinity``, which other parsers reject); in bftaichi's
+    files and ``--json`` output a null number means "not defined" (e.g. the distances of a
+    mesh without surface)."""
 
     def default(o):
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
         if isinstance(o, Path):
             return str(o)
         raise TypeError(f"not JSON serialisable: {type(o)}")
 
-    atomic_write_bytes(path, (json.dumps(obj, indent=2, default=default) + "\n").encode())
+    return json.dumps(_finite_or_null(obj), indent=indent, default=default, allow_nan=False)
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    """:func:`to_json` of ``obj`` (2-space indent), written atomically."""
+    atomic_write_bytes(path, (to_json(obj) + "\n").encode())
 
 
 def write_npz(path: str | os.PathLike, **arrays) -> None:
@@ -154,21 +175,75 @@ def write_mesh_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndar
 def read_mesh_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Read a PLY written by :func:`write_mesh_ply`: (vertices, faces, extra vertex properties).
     Vertices are world coordinates: float32 when the file stores ``float`` x y z, float64 when
-    it stores ``double`` (a mesh of a scene far from the world origin)."""
+    it stores ``double`` (a mesh of a scene far from the world origin).
+    Raises DataError naming the file if it is not such a mesh: unreadable, truncated or with
+    bytes after its data (a damaged element count), no vertex ``x y z``, faces that are not
+    triangles or index outside ``0..V-1``, NaN or inf in the vertices or their float
+    properties."""
     from plyfile import PlyData
 
-    try:  # triangles (what write_mesh_ply writes): plyfile's vectorised path
-        ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3}})
-    except Exception:  # noqa: BLE001 - other lists or a damaged file: the general reader
-        ply = PlyData.read(str(path))
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            try:  # triangles (what write_mesh_ply writes): plyfile's vectorised path
+                ply = PlyData.read(f, known_list_len={"face": {"vertex_indices": 3}})
+            except Exception:  # noqa: BLE001 - other lists or a damaged file: the general reader
+                f.seek(0)
+                ply = PlyData.read(f)
+            trailing = 0 if ply.text else os.fstat(f.fileno()).st_size - f.tell()
+    except FileNotFoundError:
+        raise DataError(f"mesh file {path} does not exist") from None
+    # plyfile's parse errors, and numpy's and the OS's on a damaged or truncated file
+    except Exception as e:  # noqa: BLE001 - re-raised as DataError naming the file
+        raise DataError(f"{path}: cannot read the PLY mesh, the file is damaged or truncated "
+                        f"({type(e).__name__}: {e})") from None
+    if trailing:
+        raise DataError(f"{path}: {trailing} bytes after the PLY data: the header's element "
+                        "counts do not match the file (damaged or truncated header)")
+    return _ply_mesh_arrays(ply, path)
+
+
+def _ply_mesh_arrays(ply, path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """:func:`read_mesh_ply`'s arrays of a parsed PLY, checked (DataError naming ``path``)."""
+    if "vertex" not in ply:
+        raise DataError(f"{path}: no 'vertex' element, not a mesh")
     v = ply["vertex"].data
+    names = v.dtype.names or ()
+    missing = [a for a in ("x", "y", "z") if a not in names or v.dtype[a].kind not in "fiu"]
+    if missing:
+        raise DataError(f"{path}: the vertices lack the number propert"
+                        f"{'y' if len(missing) == 1 else 'ies'} {' '.join(missing)}")
     xyz = np.float64 if v.dtype["x"].itemsize == 8 else np.float32
     vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(xyz)
     extra = {n: np.asarray(v[n]) for n in v.dtype.names if n not in ("x", "y", "z")}
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise DataError(f"{path}: {int(bad.sum())} vertices have NaN or infinite coordinates "
+                        f"(the first: vertex {int(np.flatnonzero(bad)[0])})")
+    for name, values in extra.items():
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            raise DataError(f"{path}: vertex property {name} holds NaN or inf")
     faces = np.zeros((0, 3), np.int32)
     if "face" in ply and len(ply["face"].data):
+        if "vertex_indices" not in (ply["face"].data.dtype.names or ()):
+            raise DataError(f"{path}: the faces lack the property vertex_indices")
         idx = ply["face"].data["vertex_indices"]  # (M, 3), or rows of objects (general path)
-        faces = (np.stack(idx) if idx.dtype == object else np.asarray(idx)).astype(np.int32)
+        if idx.dtype == object:
+            sizes = np.array([np.size(row) for row in idx])
+            if (sizes != 3).any():
+                k = int(np.flatnonzero(sizes != 3)[0])
+                raise DataError(f"{path}: face {k} has {sizes[k]} vertex indices; only "
+                                "triangle meshes are read")
+            idx = np.stack(idx)
+        idx = np.asarray(idx)
+        if idx.ndim != 2 or idx.shape[1] != 3 or idx.dtype.kind not in "iu":
+            raise DataError(f"{path}: face vertex_indices must be lists of 3 integers, got "
+                            f"{idx.dtype} of shape {idx.shape}")
+        lo, hi = int(idx.min()), int(idx.max())
+        if lo < 0 or hi >= len(vertices):
+            raise DataError(f"{path}: face vertex indices span {lo}..{hi} but the mesh has "
+                            f"{len(vertices)} vertices")
+        faces = idx.astype(np.int32)
     return vertices, faces, extra
 
 

@@ -20,7 +20,7 @@ from .geometry import points_in_world
 from .stages.band import Band
 from .stages.observe import ObservationConfig
 
-__all__ = ["Posterior", "VERTEX_ATTRS", "mesh_attrs"]
+__all__ = ["Posterior", "VERTEX_ATTRS", "mesh_attrs", "read_band"]
 
 #: band.npz arrays of the DESIGN.md section 4 contract, and those that let planning and
 #: evaluation reload the posterior's observation model (not written by older versions).
@@ -44,6 +44,64 @@ def mesh_attrs(mesh: trimesh.Trimesh) -> dict:
     """The :data:`VERTEX_ATTRS` of a mesh from :meth:`Posterior.extract_mesh`, for
     :func:`~bftaichi.io.write_mesh_ply`."""
     return {name: mesh.vertex_attributes[name] for name in VERTEX_ATTRS}
+
+
+def read_band(path) -> dict[str, np.ndarray]:
+    """The arrays of a ``band.npz`` (:meth:`Posterior.band_arrays`, or the ``ijk, voxel_size,
+    tsdf, weight`` of a ``run.stages = "tsdf_only"`` run), checked so that no reader fails
+    deeper: an intact .npz archive; ``ijk`` (N, 3) integers, unique and sorted, ``tsdf`` and
+    ``weight`` (N,) finite floats, weight >= 0 (:func:`kernels.band.check_voxels`; returned
+    as int32 / float32); ``voxel_size`` one positive finite float; where present, ``mean``,
+    ``var`` (N,) and ``cov`` (N, 3) finite floats, ``origin`` 3 finite floats, the scalars
+    of the observation model finite floats >= 0 and ``observation`` a string. Arrays of other
+    names are returned unchecked (a newer version may add some).
+
+    Raises DataError naming the file and what is wrong."""
+    from kernels.band import check_voxels
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: band file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    # zipfile, zlib and numpy's .npy header parser raise many types on a damaged archive; an
+    # .npy file (not an archive) loads as one array, which has no context manager
+    except Exception as e:  # noqa: BLE001 - re-raised as DataError naming the file
+        raise DataError(f"{path}: cannot read the band, the .npz archive is damaged or "
+                        f"truncated ({type(e).__name__}: {e})") from None
+    missing = [k for k in ("ijk", "voxel_size", "tsdf", "weight") if k not in data]
+    if missing:
+        raise DataError(f"{path}: missing arrays {', '.join(missing)}")
+    floats = ("voxel_size", "tsdf", "weight", "mean", "var", "cov", ORIGIN_ARRAY,
+              *MODEL_ARRAYS[1:])
+    for name in floats:
+        if name in data and data[name].dtype.kind != "f":
+            raise DataError(f"{path}: array {name} has dtype {data[name].dtype}, not floating "
+                            "point")
+    try:
+        data["ijk"], data["tsdf"], data["weight"] = check_voxels(
+            data["ijk"], data["tsdf"], data["weight"], what="array")
+    except ValueError as e:
+        raise DataError(f"{path}: {e}") from None
+    n = len(data["ijk"])
+    shapes = {"voxel_size": (), "mean": (n,), "var": (n,), "cov": (n, 3), ORIGIN_ARRAY: (3,),
+              **{name: () for name in MODEL_ARRAYS}}
+    for name, shape in shapes.items():
+        if name in data and data[name].shape != shape:
+            raise DataError(f"{path}: array {name} has shape {data[name].shape}, not {shape}"
+                            f"{f' (ijk has {n} voxels)' if n in shape else ''}")
+        if name in data and name != "observation" and not np.isfinite(data[name]).all():
+            raise DataError(f"{path}: array {name} holds NaN or inf")
+    if not data["voxel_size"] > 0:
+        raise DataError(f"{path}: voxel_size = {data['voxel_size']} is not positive")
+    negative = [name for name in MODEL_ARRAYS[1:] if name in data and data[name] < 0]
+    if negative:
+        raise DataError(f"{path}: {negative[0]} = {data[negative[0]]} is negative")
+    if "observation" in data and data["observation"].dtype.kind != "U":
+        raise DataError(f"{path}: array observation has dtype {data['observation'].dtype}, "
+                        "not a string of settings")
+    return data
 
 
 @dataclass(eq=False)
@@ -127,33 +185,24 @@ class Posterior:
         without ``cov`` loads with ``cov = None``: :meth:`extract_mesh` then gives every vertex
         the interpolated marginal bound as ``sigma`` (above the std of the SDF: by 27-35 %
         median on the spheres of tools/vertex_sigma_accuracy.py).
-        Raises DataError naming the file."""
+        Raises DataError naming the file (:func:`read_band` says what it checks)."""
+        from .checks import check_finite
         from .running.folder import reading
 
-        try:
-            with reading(Path(path).parent), np.load(path) as z:  # not while a run commits
-                data = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
-            raise DataError(f"{path}: cannot read the band ({e})") from None
+        with reading(Path(path).parent):  # not while a run commits
+            data = read_band(path)
         missing = [k for k in BAND_ARRAYS if k not in data]
         if missing:
             hint = " (a run.stages = 'tsdf_only' run has no posterior)" if "mean" in missing else ""
             raise DataError(f"{path}: missing arrays {', '.join(missing)}{hint}")
-        n = len(data["ijk"])
-        if data["ijk"].shape != (n, 3) or any(data[k].shape != (n,) for k in
-                                              ("mean", "var", "tsdf", "weight")):
-            raise DataError(f"{path}: arrays ijk (N, 3) and mean/var/tsdf/weight (N,) disagree")
-        if "cov" in data and data["cov"].shape != (n, 3):
-            raise DataError(f"{path}: array cov has shape {data['cov'].shape}, not ({n}, 3)")
         origin = np.asarray(data.get(ORIGIN_ARRAY, np.zeros(3)), np.float64)
-        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise DataError(f"{path}: array origin must be 3 finite numbers (metres), got "
-                            f"shape {origin.shape}")
         model = {}
         if all(k in data for k in MODEL_ARRAYS if k != "sigma_corr_m"):
             try:
                 obs = ObservationConfig(**json.loads(str(data["observation"])))
-            except (ValueError, TypeError) as e:
+                check_finite("observation", obs)
+                obs.check()
+            except (ValueError, TypeError) as e:  # also ConfigError, a ValueError
                 raise DataError(f"{path}: the array 'observation' is not this version's "
                                 f"observation settings ({e})") from None
             model = {"observation": obs, "trunc_m": float(data["trunc_m"]),

@@ -180,35 +180,30 @@ def _gather_band(band_cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
 
 # -- host side -------------------------------------------------------------------------------
 
-def _check_input(ijk, tsdf, weight, tau_b, dilation):
-    """Validated contiguous (ijk int32, tsdf float32, weight float32, tau_b float32)."""
+def check_voxels(ijk, tsdf, weight, what: str = "band input") -> tuple[np.ndarray, ...]:
+    """Validated contiguous (ijk int32, tsdf float32, weight float32) of a sorted voxel list
+    (a TSDF export, a band): ``ijk`` (M, 3) integers within ``+-MAX_ABS_IJK``, unique and
+    sorted by (i, j, k); ``tsdf`` and ``weight`` (M,) finite, ``weight >= 0``. Raises
+    ValueError starting with ``what`` and the array's name."""
     ijk = np.asarray(ijk)
     tsdf = np.asarray(tsdf)
     weight = np.asarray(weight)
     if ijk.ndim != 2 or ijk.shape[1] != 3:
-        raise ValueError(f"band input ijk must have shape (M, 3), got {ijk.shape}")
+        raise ValueError(f"{what} ijk must have shape (M, 3), got {ijk.shape}")
     if ijk.size and not np.issubdtype(ijk.dtype, np.integer):
-        raise ValueError(f"band input ijk must be integer voxel indices, got dtype {ijk.dtype}")
+        raise ValueError(f"{what} ijk must be integer voxel indices, got dtype {ijk.dtype}")
     m = ijk.shape[0]
     for name, arr in (("tsdf", tsdf), ("weight", weight)):
         if arr.shape != (m,):
-            raise ValueError(f"band input {name} must have shape ({m},) like ijk, "
+            raise ValueError(f"{what} {name} must have shape ({m},) like ijk, "
                              f"got {arr.shape}")
         if not np.isfinite(arr).all():
-            raise ValueError(f"band input {name} has {int((~np.isfinite(arr)).sum())} "
+            raise ValueError(f"{what} {name} has {int((~np.isfinite(arr)).sum())} "
                              f"non-finite values")
     if (weight < 0).any():
-        raise ValueError(f"band input weight has {int((weight < 0).sum())} negative values")
-    if not (isinstance(tau_b, (int, float, np.integer, np.floating)) and np.isfinite(tau_b)
-            and tau_b > 0):
-        raise ValueError(f"band truncation tau_b must be a positive number of metres, "
-                         f"got {tau_b!r}")
-    if isinstance(dilation, bool) or not isinstance(dilation, (int, np.integer)) \
-            or not 0 <= dilation <= MAX_DILATION:
-        raise ValueError(f"band dilation must be an integer in [0, {MAX_DILATION}], "
-                         f"got {dilation!r}")
+        raise ValueError(f"{what} weight has {int((weight < 0).sum())} negative values")
     if m and max(-int(ijk.min()), int(ijk.max())) > MAX_ABS_IJK:
-        raise ValueError(f"band input ijk has voxel indices beyond +-{MAX_ABS_IJK}")
+        raise ValueError(f"{what} ijk has voxel indices beyond +-{MAX_ABS_IJK}")
     if m > 1:
         key = _lex_key(ijk[:, 0], ijk[:, 1], ijk[:, 2])
         if key is not None:
@@ -219,10 +214,24 @@ def _check_input(ijk, tsdf, weight, tau_b, dilation):
                                                              | ((d[:, 1] == 0) & (d[:, 2] > 0))))
         if not increasing.all():
             bad = int(np.flatnonzero(~increasing)[0])
-            raise ValueError(f"band input ijk must be unique and sorted by (i, j, k) (as "
+            raise ValueError(f"{what} ijk must be unique and sorted by (i, j, k) (as "
                              f"SparseTSDF.export gives it); rows {bad} and {bad + 1} are not")
     return (np.ascontiguousarray(ijk, np.int32), np.ascontiguousarray(tsdf, np.float32),
-            np.ascontiguousarray(weight, np.float32), np.float32(tau_b))
+            np.ascontiguousarray(weight, np.float32))
+
+
+def _check_input(ijk, tsdf, weight, tau_b, dilation):
+    """Validated contiguous (ijk int32, tsdf float32, weight float32, tau_b float32)."""
+    ijk, tsdf, weight = check_voxels(ijk, tsdf, weight)
+    if not (isinstance(tau_b, (int, float, np.integer, np.floating)) and np.isfinite(tau_b)
+            and tau_b > 0):
+        raise ValueError(f"band truncation tau_b must be a positive number of metres, "
+                         f"got {tau_b!r}")
+    if isinstance(dilation, bool) or not isinstance(dilation, (int, np.integer)) \
+            or not 0 <= dilation <= MAX_DILATION:
+        raise ValueError(f"band dilation must be an integer in [0, {MAX_DILATION}], "
+                         f"got {dilation!r}")
+    return ijk, tsdf, weight, np.float32(tau_b)
 
 
 def _empty_band() -> dict:

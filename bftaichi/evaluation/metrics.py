@@ -25,22 +25,23 @@ import numpy as np
 from ..errors import BftaichiError, DataError
 
 __all__ = ["geometry_metrics", "surface_distances", "surface_sdf", "uncertainty_metrics",
-           "load_mesh", "format_table", "DEFAULT_THRESHOLDS_MM", "near_surface_voxels",
-           "band_uncertainty", "vertex_errors", "vertex_uncertainty"]
+           "load_mesh", "check_mesh_file", "format_table", "DEFAULT_THRESHOLDS_MM",
+           "near_surface_voxels", "band_uncertainty", "vertex_errors", "vertex_uncertainty"]
 
 #: Default F-score thresholds (mm), as in the BayesFusion-SDF paper.
 DEFAULT_THRESHOLDS_MM = (5, 10, 20, 50)
 
 
-def load_mesh(path: str | os.PathLike):
+def load_mesh(path: str | os.PathLike, surface: bool = False):
     """Load a triangle mesh file (PLY, OBJ, STL, OFF, GLB, ...) as a ``trimesh.Trimesh``.
 
     A file holding a scene of several meshes is concatenated into one mesh (in world frame).
     Vertices are kept as stored (no merging), units as stored (bftaichi writes metres).
+    ``surface``: the mesh must also have a positive area (a ground truth to measure against).
 
     Raises:
-        DataError naming the path if it is missing, unreadable, or holds no triangles
-        (e.g. a point cloud).
+        DataError naming the path if it is missing or unreadable, or its content fails
+        :func:`check_mesh_file`.
     """
     import trimesh
 
@@ -55,6 +56,16 @@ def load_mesh(path: str | os.PathLike):
     # NotImplementedError for an unknown format, struct.error) on a malformed file.
     except Exception as e:  # noqa: BLE001 - re-raised as DataError naming the file
         raise DataError(f"cannot read mesh file {path}: {type(e).__name__}: {e}") from e
+    return check_mesh_file(mesh, path, surface)
+
+
+def check_mesh_file(mesh, path, surface: bool = False):
+    """``mesh``, read from file ``path``, if it is a usable triangle mesh: a
+    ``trimesh.Trimesh`` with triangles, finite vertex coordinates, face indices in
+    ``0..V-1`` and a finite surface area (positive with ``surface``). Else DataError naming
+    the file and what is wrong (e.g. a point cloud, NaN coordinates, a damaged face list)."""
+    import trimesh
+
     if not isinstance(mesh, trimesh.Trimesh):
         raise DataError(f"mesh file {path} does not hold a triangle mesh "
                         f"(got {type(mesh).__name__})")
@@ -62,6 +73,14 @@ def load_mesh(path: str | os.PathLike):
         raise DataError(f"mesh file {path} holds no triangles")
     if not np.all(np.isfinite(mesh.vertices)):
         raise DataError(f"mesh file {path} has non-finite vertex coordinates")
+    lo, hi = int(mesh.faces.min()), int(mesh.faces.max())
+    if lo < 0 or hi >= len(mesh.vertices):
+        raise DataError(f"mesh file {path}: face vertex indices span {lo}..{hi} but the mesh "
+                        f"has {len(mesh.vertices)} vertices")
+    if not np.isfinite(mesh.area):
+        raise DataError(f"mesh file {path}: the surface area overflows (coordinates too large)")
+    if surface and not mesh.area > 0:
+        raise DataError(f"mesh file {path} has no surface: every triangle has zero area")
     return mesh
 
 

@@ -265,6 +265,21 @@ def json_numbers(d, keys: tuple[str, ...], path: Path, what: str) -> list[float]
     return [float(d[k]) for k in keys]
 
 
+def json_matrix(value, shape: tuple[int, ...], path: Path, what: str) -> np.ndarray:
+    """``value`` (nested JSON lists) as a float64 array of ``shape`` (-1: any length); DataError
+    naming ``path`` and ``what`` unless it is one, of numbers (values not checked here)."""
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):  # ragged lists, text, objects
+        a = None
+    if a is None or a.ndim != len(shape) or any(want not in (-1, got)
+                                                for want, got in zip(shape, a.shape)):
+        dims = "x".join("n" if d == -1 else str(d) for d in shape)
+        raise DataError(f"{path}: {what} must be a {dims} array of numbers, got "
+                        f"{str(value)[:80]}")
+    return a
+
+
 def stem_key(stem: str) -> tuple:
     """Sort key: numeric stems by value (``2`` before ``10``), others after them by name."""
     return (0, int(stem), stem) if stem.isdigit() else (1, 0, stem)

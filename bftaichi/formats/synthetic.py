@@ -48,6 +48,7 @@ import trimesh
 
 from ..config import PRIMITIVES, SyntheticConfig
 from ..errors import ConfigError, DataError
+from ..evaluation.metrics import check_mesh_file
 from ..frame import Frame, clean_depth
 from ..geometry import check_K, check_pose, intrinsics, look_at
 from ..io import atomic_write_bytes, ensure_out_dir, write_json, write_mesh_ply
@@ -160,10 +161,11 @@ def _load_mesh_file(path: Path) -> trimesh.Trimesh:
     if isinstance(loaded, trimesh.Scene):
         if not loaded.geometry:
             raise DataError(f"mesh file {path} contains no geometry")
-        loaded = loaded.to_mesh()
-    if not isinstance(loaded, trimesh.Trimesh):
-        raise DataError(f"mesh file {path} holds a {type(loaded).__name__}, not a triangle mesh")
-    return loaded
+        try:
+            loaded = loaded.to_mesh()
+        except Exception as e:  # noqa: BLE001 - trimesh's concatenation of damaged geometry
+            raise DataError(f"mesh file {path} cannot be read: {type(e).__name__}: {e}") from None
+    return check_mesh_file(loaded, path, surface=True)
 
 
 def make_mesh(cfg: SyntheticConfig) -> trimesh.Trimesh:
@@ -176,16 +178,13 @@ def make_mesh(cfg: SyntheticConfig) -> trimesh.Trimesh:
     centre is at the origin.
 
     Raises:
-        DataError: the file is missing or unreadable, or the mesh has no triangles (names the path).
+        DataError: the file is missing or unreadable, or its mesh fails
+            :func:`~bftaichi.evaluation.metrics.check_mesh_file` with ``surface`` (names the path).
     """
     if cfg.mesh in PRIMITIVES:
         return _primitive(cfg.mesh, float(cfg.radius_m))
     path = Path(cfg.mesh).expanduser()
     mesh = _load_mesh_file(path)
-    if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
-        raise DataError(f"mesh file {path} contains no triangles")
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise DataError(f"mesh file {path} has NaN or infinite vertex coordinates")
     if cfg.mesh_up == "y":
         mesh.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, [1.0, 0.0, 0.0]))
     if cfg.mesh_scale != 1.0:

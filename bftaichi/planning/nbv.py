@@ -55,7 +55,8 @@ from ..errors import ConfigError, DataError
 from ..geometry import check_pose, look_at, points_in_world, pose_in_local
 
 __all__ = ["sphere_candidates", "ring_candidates", "load_poses", "make_candidates",
-           "candidates_around", "rank", "CoverageGrid", "region_of_interest", "Planner", "plan"]
+           "candidates_around", "rank", "CoverageGrid", "region_of_interest", "Planner", "plan",
+           "read_ranking"]
 
 
 # -- candidates --------------------------------------------------------------------------------
@@ -354,6 +355,29 @@ def rank_run(post, cfg: Config, frames, out_dir, progress=None) -> dict:
     height, width = first.depth_m.shape
     result = plan(post, cfg, frames, first.K, (width, height), progress=progress)
     write_json(Path(out_dir) / "nbv.json", result)
+    return result
+
+
+def read_ranking(path) -> dict:
+    """The content of an ``nbv.json`` (:func:`rank_run`), checked where its readers rely on
+    it: a JSON object whose ``candidates`` is a non-empty list of objects, each with an
+    integer ``index`` and ``rank``, a finite ``utility`` and a rigid 4x4 ``pose`` (T_W_C).
+    Raises DataError naming the file and what is wrong."""
+    from ..formats.readers import json_matrix, json_numbers, read_json
+
+    path = Path(path)
+    result = read_json(path, "NBV ranking")
+    candidates = result.get("candidates") if isinstance(result, dict) else None
+    if not isinstance(candidates, list) or not candidates:
+        raise DataError(f"{path}: not an NBV ranking: it needs a non-empty list 'candidates'")
+    for k, c in enumerate(candidates):
+        what = f"candidate {k}"
+        index, rank_, utility = json_numbers(c, ("index", "rank", "utility"), path, what)
+        if not (index.is_integer() and rank_.is_integer() and math.isfinite(utility)):
+            raise DataError(f"{path}: {what} needs integer index and rank and a finite "
+                            f"utility, got {index}, {rank_}, {utility}")
+        check_pose(json_matrix(c.get("pose"), (4, 4), path,
+                               f"{what} pose"), f"{path}: {what}")
     return result
 
 

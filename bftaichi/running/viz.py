@@ -37,7 +37,6 @@ scene is shown in the run's local frame: world minus ``origin_m`` of report.json
 from __future__ import annotations
 
 import html
-import json
 import time
 from pathlib import Path
 
@@ -124,26 +123,23 @@ def _load_outputs(out: Path) -> dict:
 
 
 def _read_outputs(out: Path) -> dict:
+    """Each output file through its checking reader (a damaged one: DataError naming it)."""
     from ..io import read_mesh_ply
+    from ..planning.nbv import read_ranking
+    from ..posterior import read_band
+    from .pipeline import read_report
 
     out = Path(out)
     if not out.is_dir():
         raise DataError(f"{out} is not a folder of run outputs")
-    data = {"report": None, "nbv": None}
-    for name in ("report", "nbv"):
-        p = out / f"{name}.json"
-        if p.exists():
-            try:
-                data[name] = json.loads(p.read_text())
-            except ValueError:
-                raise DataError(f"{p} is not valid JSON") from None
-    for name in ("mesh.ply", "tsdf_mesh.ply"):
-        p = out / name
-        data[name] = read_mesh_ply(p) if p.exists() else None
+    readers = {"report": (out / "report.json", read_report),
+               "nbv": (out / "nbv.json", read_ranking),
+               "mesh.ply": (out / "mesh.ply", read_mesh_ply),
+               "tsdf_mesh.ply": (out / "tsdf_mesh.ply", read_mesh_ply),
+               "band": (out / "band.npz", read_band)}
+    data = {name: read(p) if p.exists() else None for name, (p, read) in readers.items()}
     if data["mesh.ply"] is None and data["tsdf_mesh.ply"] is None:
         raise DataError(f"{out} holds neither mesh.ply nor tsdf_mesh.ply: nothing to show")
-    p = out / "band.npz"
-    data["band"] = dict(np.load(p)) if p.exists() else None
     report, band = data["report"] or {}, data["band"] or {}
     data["origin"] = np.asarray(report.get("origin_m", band.get("origin", np.zeros(3))),
                                 np.float64)
