@@ -302,10 +302,13 @@ def synth(scene, out, sets, quiet):
     """
     from .config import load_config
     from .formats.synthetic import SyntheticDataset, write_7scenes
+    from .io import ensure_out_dir
+    from .running import folder
 
     cfg = load_config(scene, sets)
     ds = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)
-    path = write_7scenes(ds, out, progress=not quiet)
+    with folder.hold(ensure_out_dir(out)):  # one writer at a time
+        path = write_7scenes(ds, out, progress=not quiet)
     if not quiet:
         click.echo(f"wrote {len(ds)} frames of {ds.image_size[0]}x{ds.image_size[1]} and "
                    f"gt_mesh.ply to {path}/")
@@ -365,7 +368,8 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verb
     from .errors import DataError
     from .io import write_json
     from .planning.nbv import nbv_summary, rank_run
-    from .running.pipeline import open_frames, read_report
+    from .running.pipeline import open_frames
+    from .running.report import read_report
     from .posterior import Posterior
 
     out = Path(out_dir)

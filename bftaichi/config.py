@@ -24,8 +24,10 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .checks import check_choice, check_finite, check_range
-from .errors import ConfigError
+from .checks import (MAX_SEED, check_choice, check_finite, check_range, coerce as _coerce,
+                     parse_override, parse_slice)
+from .errors import ConfigError, DataError
+from .geometry import check_field_of_view, intrinsics
 from .stages.band import BandConfig
 from .stages.integrate import TSDFConfig
 from .stages.observe import ObservationConfig
@@ -48,6 +50,11 @@ __all__ = [
     "NBVConfig",
     "load_config",
 ]
+
+MAX_DEPTH_M = 1000.0
+"""The farthest depth a scene may keep (``scene.depth_max_m``): beyond the range of any depth
+camera or lidar range image; larger values are a unit mistake."""
+
 
 @dataclass
 class SceneConfig:
@@ -101,7 +108,8 @@ class SceneConfig:
             raise ConfigError(f"scene.pose_convention = {self.pose_convention!r} applies to the folder "
                               f"format only; scene.format = {self.format!r} has T_W_C poses")
         check_range("scene.depth_min_m", self.depth_min_m, 0.0)
-        check_range("scene.depth_max_m", self.depth_max_m, self.depth_min_m, lo_open=True)
+        check_range("scene.depth_max_m", self.depth_max_m, self.depth_min_m, MAX_DEPTH_M,
+                    lo_open=True)
         if self.source == "dataset" and not self.data:
             raise ConfigError("scene.data is empty but scene.source = 'dataset': give the dataset folder")
         if self.frames:
@@ -224,13 +232,18 @@ class SyntheticConfig:
             check_range(f"synthetic.{key}", getattr(self, key), 0.0, lo_open=True)
         check_range("synthetic.cx", self.cx, 0.0, self.width - 1)
         check_range("synthetic.cy", self.cy, 0.0, self.height - 1)
+        try:
+            check_field_of_view(intrinsics(self.fx, self.fy, self.cx, self.cy),
+                                (self.height, self.width), "synthetic.fx / synthetic.fy")
+        except DataError as e:
+            raise ConfigError(str(e)) from None
         check_choice("synthetic.noise", self.noise, ("none", "gaussian", "kinect"))
         check_range("synthetic.sigma_m", self.sigma_m, 0.0)
         check_range("synthetic.depth_a_m", self.depth_a_m, 0.0)
         check_range("synthetic.depth_b", self.depth_b, 0.0)
         check_range("synthetic.quantization_m", self.quantization_m, 0.0, 1.0)
         check_range("synthetic.dropout", self.dropout, 0.0, 0.99)
-        check_range("synthetic.seed", self.seed, 0)
+        check_range("synthetic.seed", self.seed, 0, MAX_SEED)
 
 
 @dataclass
@@ -257,6 +270,7 @@ class EvalConfig:
         for t in self.thresholds_mm:
             check_range("eval.thresholds_mm", float(t), 0.0, lo_open=True)
         check_range("eval.n_samples", self.n_samples, 100, 50_000_000)
+        check_range("eval.seed", self.seed, 0, MAX_SEED)
 
 
 @dataclass
@@ -347,6 +361,8 @@ class NBVConfig:
             raise ConfigError(f"nbv.target must be empty or [x, y, z], got {self.target}")
         if self.candidates == "file" and not self.poses_file:
             raise ConfigError("nbv.candidates = 'file' needs nbv.poses_file")
+        if self.candidates == "file" and not Path(self.poses_file).expanduser().exists():
+            raise ConfigError(f"nbv.poses_file = {self.poses_file!r} does not exist")
         check_range("nbv.stride", self.stride, 0, 64)
         check_range("nbv.eps_voxels", self.eps_voxels, 0.0, 100.0, lo_open=True)
         check_range("nbv.coverage_cells", self.coverage_cells, 8, 512)
@@ -397,6 +413,7 @@ class RunConfig:
         check_choice("run.stages", self.stages, ("full", "tsdf_only"))
         check_range("run.memory_fraction", self.memory_fraction, 0.0, 1.0, lo_open=True)
         check_range("run.memory_budget_gib", self.memory_budget_gib, 0.0, 1e6)
+        check_range("run.seed", self.seed, 0, MAX_SEED)
 
 
 @dataclass
@@ -420,6 +437,9 @@ class Config:
         for f in dataclasses.fields(self):
             check_finite(f.name, getattr(self, f.name))
             getattr(self, f.name).check()
+        if self.mesh.min_weight > self.tsdf.max_weight:  # weights never exceed the cap
+            raise ConfigError(f"mesh.min_weight = {self.mesh.min_weight} is above tsdf.max_weight "
+                              f"= {self.tsdf.max_weight}: no voxel could ever be meshed")
         return self
 
     @classmethod
@@ -433,33 +453,6 @@ class Config:
 
 def _field_types(obj) -> dict[str, typing.Any]:
     return typing.get_type_hints(type(obj))
-
-
-def _coerce(key: str, value, typ):
-    """Convert a TOML value to the field type, or raise ConfigError naming ``key``."""
-    origin = typing.get_origin(typ)
-    if typ is bool:
-        if isinstance(value, bool):
-            return value
-    elif typ is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-    elif typ is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-    elif typ is str:
-        if isinstance(value, str):
-            return value
-    elif origin is list:
-        (item,) = typing.get_args(typ)
-        if isinstance(value, list):
-            return [_coerce(key, v, item) for v in value]
-    else:  # pragma: no cover - all fields use the types above
-        raise ConfigError(f"{key}: unsupported field type {typ}")
-    tname = getattr(typ, "__name__", str(typ))
-    raise ConfigError(f"{key} = {value!r} has the wrong type: expected {tname}")
 
 
 RENAMED = {
@@ -506,23 +499,6 @@ def apply_dict(cfg: Config, data: dict, origin: str = "") -> Config:
             except ConfigError as e:
                 raise ConfigError(f"{e}{where}") from None
     return cfg
-
-
-def parse_override(text: str) -> tuple[str, str, typing.Any]:
-    """Parse ``section.key=value``; the value is TOML (``0.01``, ``true``, ``[5, 10]``, ``"s"``),
-    and a bare word that is not valid TOML is taken as a string."""
-    if "=" not in text:
-        raise ConfigError(f"--set {text!r}: expected section.key=value")
-    lhs, rhs = text.split("=", 1)
-    lhs = lhs.strip()
-    if lhs.count(".") != 1:
-        raise ConfigError(f"--set {text!r}: the key must be section.key, e.g. tsdf.voxel_size_m")
-    section, key = lhs.split(".")
-    try:
-        value = tomllib.loads(f"v = {rhs.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = rhs.strip()
-    return section, key, value
 
 
 def _resolve_path(p: str, base: Path) -> str:
@@ -591,22 +567,6 @@ def _check_error(cfg: Config) -> str | None:
     except ConfigError as e:
         return str(e)
     return None
-
-
-def parse_slice(text: str, key: str = "frames") -> slice:
-    """``"a:b:c"`` -> ``slice(a, b, c)``; a single integer ``"n"`` means the first n frames."""
-    try:
-        parts = [int(p) if p.strip() else None for p in text.split(":")]
-    except ValueError:
-        raise ConfigError(f"{key} = {text!r} is not a slice like '0:100:2'") from None
-    if len(parts) == 1:
-        return slice(0, parts[0])
-    if len(parts) > 3:
-        raise ConfigError(f"{key} = {text!r} is not a slice like '0:100:2'")
-    s = slice(*parts)
-    if s.step is not None and s.step <= 0:
-        raise ConfigError(f"{key} = {text!r}: the step must be positive")
-    return s
 
 
 def save_config(cfg: Config, path: str | os.PathLike) -> None:

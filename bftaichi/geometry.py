@@ -73,6 +73,25 @@ def check_K(K, where: str) -> np.ndarray:
     return K
 
 
+MAX_FIELD_OF_VIEW_DEG = 170.0
+"""The widest field of view (per axis) a pinhole camera is taken to have: wider is a focal
+length in the wrong unit (a fisheye must be undistorted to a narrower pinhole first)."""
+
+
+def check_field_of_view(K, image_size_hw, where: str) -> None:
+    """DataError unless the pinhole ``K`` sees at most :data:`MAX_FIELD_OF_VIEW_DEG` across an
+    image of ``(H, W)`` pixels on each axis (e.g. fx = 1 for a 640-pixel-wide image: 179.8°)."""
+    K = np.asarray(K, dtype=np.float64)
+    h, w = image_size_hw
+    # the angle between the rays through the image's two edges on each axis
+    fov = [np.degrees(np.arctan((n - c) / f) + np.arctan(c / f))
+           for f, c, n in ((K[0, 0], K[0, 2], w), (K[1, 1], K[1, 2], h))]
+    if max(fov) > MAX_FIELD_OF_VIEW_DEG:
+        raise DataError(f"{where}: the intrinsics (fx={K[0, 0]:g}, fy={K[1, 1]:g}) give a "
+                        f"{max(fov):.1f} degree field of view across the {w}x{h} image (at most "
+                        f"{MAX_FIELD_OF_VIEW_DEG:g}): the focal lengths must be in pixels")
+
+
 def check_pose(T, where: str, tol: float = 1e-3) -> np.ndarray:
     """Validate a 4x4 rigid transform ``T_W_C``; return it as float64.
 

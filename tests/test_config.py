@@ -292,3 +292,28 @@ def test_principal_point_outside_image_is_rejected():
     # Shrinking the image but not the principal point would silently render empty frames.
     with pytest.raises(ConfigError, match="synthetic.cx"):
         load_config(None, ["synthetic.width=64", "synthetic.height=48"])
+
+
+@pytest.mark.parametrize("override, key", [
+    ("eval.seed=-1", "eval.seed"),  # used to fail in the metrics, after the whole run
+    ("run.seed=-1", "run.seed"),
+    ("solver.seed=1099511627776", "solver.seed"),
+    ("synthetic.fx=1e-6", "synthetic.fx"),  # a 180-degree camera: the renderer never ended
+    ("scene.depth_max_m=1e12", "scene.depth_max_m"),  # a traceback in the ray caster
+    ("mesh.min_weight=1e12", "mesh.min_weight"),  # failed after the TSDF: nothing to mesh
+    ('nbv.poses_file="/no/such/poses.txt"', "nbv.poses_file"),  # failed at the nbv stage
+])
+def test_values_that_used_to_fail_late_are_refused_before_any_work(override, key, tmp_path,
+                                                                    capsys):
+    from bftaichi.cli import main
+
+    extra = ["nbv.candidates=file", "nbv.enabled=true"] if "poses_file" in override else []
+    with pytest.raises(ConfigError, match=re.escape(key)):
+        load_config(None, [override, *extra])
+    out = tmp_path / "out"
+    argv = ["run", "-q", "--out", str(out)]
+    for s in (override, *extra):
+        argv += ["--set", s]
+    assert main(argv) == 2
+    assert key in capsys.readouterr().err
+    assert not out.exists()  # refused before the output folder was touched

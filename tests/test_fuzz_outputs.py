@@ -76,7 +76,7 @@ from bftaichi.formats.synthetic import make_mesh
 from bftaichi.io import read_mesh_ply, write_json, write_npz
 from bftaichi.planning.nbv import read_ranking
 from bftaichi.posterior import Posterior
-from bftaichi.running.pipeline import read_report
+from bftaichi.running.report import read_report
 from robustness_cases import sets
 
 N_API = 150  # a library reader (milliseconds per example)

@@ -25,6 +25,7 @@ from kernels.layout import block_key_steps as _block_steps
 
 from ..errors import BftaichiError
 from ..geometry import local_origin, points_in_local
+from ..geometry import check_field_of_view
 
 __all__ = ["ResourceError", "PeakRSS", "estimate_memory", "memory_budget", "check_memory",
            "available_memory", "suggest_voxel_size"]
@@ -206,6 +207,8 @@ class SceneSample:
             frame = frames[int(i)]
             if j == 0:
                 H, W = np.asarray(frame.depth_m).shape
+                # a focal length in the wrong unit would make the ray segments below endless
+                check_field_of_view(frame.K, (H, W), frame.name)
                 f = float(min(frame.K[0][0], frame.K[1][1]))
                 self.stride = max(1, int(f * 2 * voxel_size_m / depth_max_m),
                                   math.ceil(math.sqrt(H * W / SAMPLE_PIXELS)))

@@ -127,7 +127,7 @@ def _read_outputs(out: Path) -> dict:
     from ..io import read_mesh_ply
     from ..planning.nbv import read_ranking
     from ..posterior import read_band
-    from .pipeline import read_report
+    from .report import read_report
 
     out = Path(out)
     if not out.is_dir():

@@ -29,7 +29,7 @@ from .. import backend
 from ..checks import check_range
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
 from ..geometry import MAP_VOXELS, local_origin, points_in_world, pose_in_local
-from ..geometry import check_depth, check_K, check_pose
+from ..geometry import check_depth, check_field_of_view, check_K, check_pose
 
 __all__ = ["TSDFConfig", "TSDFVolume", "auto_activation_stride", "MAX_OUTSIDE"]
 
@@ -162,6 +162,7 @@ class TSDFVolume:
         """
         depth = check_depth(depth_m, name)
         K = check_K(K, name)
+        check_field_of_view(K, depth.shape[:2], name)
         T_W_C = check_pose(T_W_C, name)
         depth = depth.astype(np.float32, copy=False)
         valid = np.isfinite(depth) & (depth > 0) & (depth <= self.depth_max_m)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..checks import check_choice, check_range
+from ..checks import MAX_SEED, check_choice, check_range
 
 __all__ = ["SolverConfig", "solve_map"]
 
@@ -43,7 +43,7 @@ class SolverConfig:
         check_range("solver.probes", self.probes, 1, 1024)
         check_choice("solver.probe_method", self.probe_method, ("rademacher", "coloring"))
         check_range("solver.probe_tol", self.probe_tol, 0.0, 1.0, lo_open=True)
-        check_range("solver.seed", self.seed, 0)
+        check_range("solver.seed", self.seed, 0, MAX_SEED)
 
 
 def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: float,
