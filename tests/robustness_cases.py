@@ -166,6 +166,11 @@ def alpha_range(root):
     return ["run", "-q", "--out", str(root / "out"), *sets("tsdf.alpha=5")]
 
 
+def seed_negative(root):
+    """A key that used to fail only in the metrics, after the whole run."""
+    return ["run", "-q", "--out", str(root / "out"), *sets("eval.seed=-1")]
+
+
 def probes_zero(root):
     return ["run", "-q", "--out", str(root / "out"), *sets("solver.probes=0")]
 
@@ -230,6 +235,112 @@ def commit_not_permitted(root):
     return ["run", "-q", "--out", str(root / "out"), *sets()]
 
 
+def _frames_without_truth(root, name):
+    """A copy of the tiny frames without gt_mesh.ply (metrics of a mesh fused from broken frames
+    are slow and beside the point)."""
+    d = copy_frames(root, name)
+    (d / "gt_mesh.ply").unlink(missing_ok=True)
+    return d
+
+
+def depth_8bit(root, *strict):
+    """Depth saved as an 8-bit PNG (a grey image): values 0-255 read as millimetres."""
+    d = _frames_without_truth(root, "depth8")
+    for p in d.glob("*.depth.png"):
+        from PIL import Image
+
+        _png(p, np.clip(np.asarray(Image.open(p)) // 8, 0, 255).astype(np.uint8))
+    return fuse(d, root, *strict)
+
+
+def depth_8bit_strict(root):
+    return depth_8bit(root, "--strict")
+
+
+def depth_transposed(root):
+    """Every depth image transposed (48x64) with the K of the 64x48 camera."""
+    from PIL import Image
+
+    d = _frames_without_truth(root, "transposed")
+    for p in d.glob("*.depth.png"):
+        _png(p, np.ascontiguousarray(np.asarray(Image.open(p)).T))
+    return fuse(d, root)
+
+
+def poses_inverted(root):
+    """Every pose file holds T_C_W (world-to-camera) instead of T_W_C."""
+    d = _frames_without_truth(root, "inverted")
+    for p in d.glob("*.pose.txt"):
+        np.savetxt(p, np.linalg.inv(np.loadtxt(p)))
+    return fuse(d, root)
+
+
+def depth_scale_10x(root):
+    """Depth read at 10000 units per metre instead of 1000: a scene 10x too small."""
+    return fuse(_frames_without_truth(root, "scale10"), root, "--depth-scale", "10000")
+
+
+def gpu_fallback(root):
+    return ["run", "-q", "--arch", "cuda", "--out", str(root / "out"), *sets()]
+
+
+def scene_beyond_the_map(root):
+    """One camera 1 km from the others: the scene does not fit the TSDF's 8192 voxels a side."""
+    d = _frames_without_truth(root, "far")
+    p = d / "frame-000001.pose.txt"
+    T = np.loadtxt(p)
+    T[0, 3] += 1000.0
+    np.savetxt(p, T)
+    return fuse(d, root)
+
+
+def _run_then(root, damage, argv_after):
+    """A complete tiny run in ``root/run``, then ``damage(run folder)``; return ``argv_after``."""
+    from bftaichi.cli import main
+
+    run = root / "run"
+    assert main(["run", "-q", "--out", str(run), *sets()]) == 0
+    damage(run)
+    return [a.replace("RUN", str(run)) for a in argv_after]
+
+
+def truncate(path: Path, keep: float = 0.5) -> None:
+    path.write_bytes(path.read_bytes()[:int(path.stat().st_size * keep)])
+
+
+def band_truncated(root):
+    return _run_then(root, lambda run: truncate(run / "band.npz"), ["nbv", "RUN", "-q"])
+
+
+def mesh_face_out_of_range(root):
+    def damage(run):
+        from bftaichi.io import read_mesh_ply, write_mesh_ply
+
+        v, f, extra = read_mesh_ply(run / "mesh.ply")
+        f[0, 0] = len(v) + 7
+        write_mesh_ply(run / "mesh.ply", v, f, vertex_attrs=extra)
+    return _run_then(root, damage, ["view", "RUN", "--html", str(root / "page.html")])
+
+
+def report_not_json(root):
+    return _run_then(root, lambda run: truncate(run / "report.json", 0.3),
+                     ["view", "RUN", "--html", str(root / "page.html")])
+
+
+def config_bad_value(root):
+    def damage(run):
+        p = run / "config.toml"
+        p.write_text(p.read_text().replace("probes = ", "probes = -", 1))
+    return _run_then(root, damage, ["nbv", "RUN", "-q"])
+
+
+def user_ply_garbage(root):
+    (root / "gt.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n"
+                                  b"property float x\nend_header\n" + bytes(range(7)))
+    d = frames_7scenes(root)
+    return ["eval", str(d / "gt_mesh.ply"), str(root / "gt.ply")]
+
+
 @dataclass
 class Case:
     name: str
@@ -260,6 +371,7 @@ CASES = [
     Case("truncation below one voxel", trunc_small, 2, r"tsdf\.trunc_m"),
     Case("alpha outside [1, 3]", alpha_range, 2, r"tsdf\.alpha"),
     Case("probes < 1", probes_zero, 2, r"solver\.probes"),
+    Case("a negative seed (eval.seed = -1)", seed_negative, 2, r"eval\.seed = -1 is out of range"),
     Case("unknown scene key", unknown_key, 2, r"voxel_sise_m.*did you mean.*voxel_size_m"),
     Case("scene file with a syntax error", syntax_error, 2, r"broken\.toml"),
     Case("output folder cannot be written", unwritable_out, 2, r"a-file"),
@@ -272,6 +384,18 @@ CASES = [
     Case("view --html into a device (/dev/null)", html_into_device, 2, r"cannot write /dev/null: it is a device"),
     Case("SIGTERM mid-run (timeout, systemd, docker stop)", ctrl_c, 143, r"interrupted by SIGTERM", inject="sigterm"),
     Case("moving the outputs in is not permitted", commit_not_permitted, 2, r"cannot replace the outputs .*Operation not permitted.*previous outputs are kept", inject="eperm"),
+    Case("8-bit depth PNG (a grey image)", depth_8bit, 0, r"warning: .*frame-000000\.depth\.png.*\[depth_8bit\]"),
+    Case("8-bit depth PNG with --strict", depth_8bit_strict, 2, r"frame-000000\.depth\.png.*\[depth_8bit\]"),
+    Case("depth transposed against K (48x64 with the K of 64x48)", depth_transposed, 0, r"warning: .*48x64.*transposed.*\[image_size\]"),
+    Case("poses given as T_C_W instead of T_W_C", poses_inverted, 0, r"warning: .*T_C_W.*\[pose_convention\]"),
+    Case("depth scale off by 10 (scene 10x too small)", depth_scale_10x, 0, r"warning: .*--depth-scale 1000 .*\[depth_scale\]"),
+    Case("GPU backend requested, none available", gpu_fallback, 0, r"warning: .*cuda.*cpu.*\[backend_fallback\]"),
+    Case("scene larger than the TSDF map (a camera 1 km away)", scene_beyond_the_map, 2, r"frame-000001: .*8192 voxels.*spans 1001\.\d m along x: it does not fit"),
+    Case("band.npz truncated, read by `nbv`", band_truncated, 2, r"band\.npz"),
+    Case("mesh.ply with a face index out of range, read by `view`", mesh_face_out_of_range, 2, r"mesh\.ply.*(face|index)"),
+    Case("report.json truncated, read by `view`", report_not_json, 2, r"report\.json"),
+    Case("config.toml of a run with a bad value, read by `nbv`", config_bad_value, 2, r"solver\.probes.*config\.toml"),
+    Case("a user PLY of garbage as `eval` ground truth", user_ply_garbage, 2, r"gt\.ply"),
 ]
 
 

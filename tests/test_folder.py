@@ -107,12 +107,13 @@ def test_a_commit_killed_at_any_step_leaves_the_old_run_or_the_new_one(runs, tmp
     assert seen["old"] == 1 and seen["new"] == len(kill_points) - 1  # the journal decides
 
 
-@pytest.mark.parametrize("failing_move", [0, 3, -1])
+@pytest.mark.parametrize("failing_move, err_no", [(0, errno.EPERM), (3, errno.ENOSPC),
+                                                (-1, errno.EBUSY)])
 def test_a_move_that_fails_keeps_the_previous_run_and_records_the_failure(runs, tmp_path,
-                                                                          failing_move):
-    """EPERM on one of the commit's moves (the first, one in the middle, the last): every
-    move already made is undone, the previous run stays byte for byte, failed_run.json says
-    why, and the command exits 2 naming the file."""
+                                                                          failing_move, err_no):
+    """EPERM, ENOSPC or EBUSY on one of the commit's moves (the first, one in the middle, the
+    last): every move already made is undone, the previous run stays byte for byte,
+    failed_run.json says why, and the command exits 2 naming the file."""
     old, _ = runs
     out = shutil.copytree(old, tmp_path / "out")
     want = tree(out)
@@ -132,7 +133,7 @@ def test_a_move_that_fails_keeps_the_previous_run_and_records_the_failure(runs, 
     def move(src, dst):
         calls.append(src)
         if len(calls) - 1 == fail_at:
-            raise PermissionError(errno.EPERM, os.strerror(errno.EPERM), str(src))
+            raise OSError(err_no, os.strerror(err_no), str(src))
         return real(src, dst)
     with mock.patch.object(folder, "_move", move):
         code = main(["run", "-q", "--overwrite", "--out", str(out), *sets()])
@@ -141,7 +142,7 @@ def test_a_move_that_fails_keeps_the_previous_run_and_records_the_failure(runs, 
     failure = json.loads(now.pop("failed_run.json"))
     assert now == want
     assert failure["status"] == "failed" and failure["stage"] == "commit"
-    assert "Operation not permitted" in failure["error"]
+    assert os.strerror(err_no) in failure["error"]
     assert not any((out / name).exists() for name in folder.INTERNAL)
 
 
