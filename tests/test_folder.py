@@ -293,3 +293,18 @@ def test_view_html_refuses_devices_fifos_and_folders_and_writes_through_links(ru
     link.symlink_to(real)
     assert main(["view", str(old), "--html", str(link)]) == 0
     assert link.is_symlink() and real.read_text().startswith("<!DOCTYPE html>")
+
+
+def test_a_file_system_without_locks_warns_and_still_writes(runs, tmp_path):
+    """Some network file systems refuse flock (ENOLCK): the run goes on, with a warning."""
+    import fcntl
+
+    old, _ = runs
+    out = shutil.copytree(old, tmp_path / "out")
+
+    def flock(fd, op):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+    with mock.patch.object(fcntl, "flock", flock), \
+            pytest.warns(UserWarning, match="does not support locks"):
+        assert main(["run", "-q", "--overwrite", "--out", str(out), *sets()]) == 0
+    assert json.loads((out / "report.json").read_text())["status"] == "complete"

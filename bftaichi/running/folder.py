@@ -65,11 +65,14 @@ JOURNAL = ".bftaichi-commit.json"
 #: Entries of a folder that belong to this mechanism, not to a run (hidden; readers skip them).
 INTERNAL = (LOCK, STAGING, PREVIOUS, JOURNAL)
 
+#: flock errors of a file system without locks (some network file systems): go on without.
+_NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.EINVAL, errno.EBADF)
+
 #: What the holder record says the command is; the CLI sets it to the command line.
 command_line = " ".join([Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python",
                          *sys.argv[1:]])
 
-_held: dict[str, list] = {}  # resolved folder -> [fd, depth]: the lock is re-entrant in-process
+_held: dict[tuple, list] = {}  # (resolved folder, thread) -> [fd, depth]: re-entrant per thread
 _held_guard = threading.Lock()
 
 
@@ -117,7 +120,7 @@ def hold(out: str | os.PathLike):
     commit is completed (:func:`recover`) and the leftovers of a killed writer are removed.
     """
     out = Path(out)
-    key = str(out.resolve())
+    key = (str(out.resolve()), threading.get_ident())
     with _held_guard:
         entry = _held.get(key)
         if entry is not None:
@@ -156,6 +159,11 @@ def _acquire(out: Path) -> int | None:
         except OSError as e:
             holder = _read_record(fd)
             os.close(fd)
+            if e.errno in _NO_LOCKS:
+                warnings.warn(f"{out}: the file system does not support locks ({e.strerror}); "
+                              "writing without one: do not run two commands into this folder "
+                              "at once", UserWarning, stacklevel=4)
+                return None
             if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise DataError(f"cannot lock output folder {out}: {e.strerror or e}") from None
             raise BftaichiError(
@@ -203,7 +211,11 @@ def _folder_lock(out: Path, exclusive: bool):
         yield
         return
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        except OSError as e:
+            if e.errno not in _NO_LOCKS:
+                raise DataError(f"cannot lock output folder {out}: {e.strerror or e}") from None
         yield
     finally:
         os.close(fd)
