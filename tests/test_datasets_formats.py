@@ -252,13 +252,13 @@ SPECS = {
         write_redwood,
         lambda r, k: r / "depth" / f"{k:06d}.png",
         lambda r, k: f"trajectory.log: lines {5 * k + 1}-{5 * k + 5}",
-        lambda r: (r / "depth" / "000001.png", "trajectory.log: 4 poses for 3 depth images"),
+        lambda r: (r / "trajectory.log", "redwood"),
         _mm, "redwood"),
     "folder": Spec(
         write_folder,
         lambda r, k: r / "depth" / f"{k:04d}.png",
         lambda r, k: f"poses.txt: line {k + 1}",
-        lambda r: (r / "depth" / "0001.png", "poses.txt: 4 poses for 3 depth images"),
+        lambda r: (r / "poses.txt", "pose file missing for depth frame depth/0000.png"),
         _mm, "folder"),
     "folder_tcw": Spec(
         write_folder_tcw,

@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import check_K, intrinsics
 from .base import Dataset
-from .readers import parse_numbers, read_depth_png, read_pose_txt, read_text, require_files, stem_key
+from .readers import parse_numbers, read_depth_png, read_pose_txt, read_text, require_files, sort_frames
 
 
 class BFSDFDataset(Dataset):
@@ -47,7 +47,7 @@ class BFSDFDataset(Dataset):
         depth_dir = self.path / "depth"
         if not depth_dir.is_dir():
             raise DataError(f"{depth_dir}: folder missing (a bfsdf dataset has {self.looks_for})")
-        names = sorted((p.stem for p in depth_dir.glob("*.png")), key=stem_key)
+        names = [p.stem for p in sort_frames(depth_dir.glob("*.png"))]
         if not names:
             return names
         require_files([self.path / "pose" / f"{n}.txt" for n in names], "pose file",

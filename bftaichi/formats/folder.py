@@ -6,9 +6,9 @@ Layout (DESIGN.md section 5)
 
     depth/*.png | *.npy      PNG: depth_scale units per metre (default 1000); .npy: float metres
                              (unless depth_scale is given)
-    poses.txt or pose/*.txt  one row-major 4x4 (16 numbers) or 3x4 (12) per line, in depth-stem
-                             order; or one 4x4 file per depth stem; T_W_C, or T_C_W with
-                             pose_convention="T_C_W" (then inverted)
+    poses.txt or pose/*.txt  one row-major 4x4 (16 numbers) or 3x4 (12) per line, line k for
+                             frame k (the number ending a depth stem); or one 4x4 file per depth
+                             stem; T_W_C, or T_C_W with pose_convention="T_C_W" (then inverted)
     intrinsics.json          {"fx","fy","cx","cy"[,"width","height"]} or {"K": [[...]] [, ...]}
     color/<stem>.png|jpg     optional colour
 
@@ -24,8 +24,9 @@ import numpy as np
 from ..errors import ConfigError, DataError
 from ..geometry import check_K, intrinsics
 from .base import Dataset
-from .readers import (POSE_CONVENTIONS, check_pose_count, json_numbers, pose_from_values, read_depth_npy,
-                      read_depth_png, read_json, read_pose_rows, read_pose_txt, require_files, stem_key)
+from .readers import (POSE_CONVENTIONS, frame_number, json_numbers, pose_from_values,
+                      poses_by_frame_number, read_depth_npy, read_depth_png, read_json,
+                      read_pose_rows, read_pose_txt, require_files, sort_frames)
 
 
 class FolderDataset(Dataset):
@@ -33,9 +34,12 @@ class FolderDataset(Dataset):
 
     Conventions: ``depth/<stem>.png`` integer depth with ``depth_scale`` units per metre (default
     1000, millimetres) or ``depth/<stem>.npy`` float depth in metres (divided by ``depth_scale``
-    only if it is given); frames ordered by stem (numerically for numeric stems). Poses:
-    ``poses.txt`` (one pose per line, in frame order: 16 numbers, a row-major 4x4, or 12, the top
-    3x4) or else ``pose/<stem>.txt`` (a 4x4 each). ``pose_convention`` says what they are:
+    only if it is given); frames ordered by the number ending the stem (``2`` before ``10``);
+    two stems with the same number (``10``, ``0010``) are an error. Poses: ``poses.txt`` (one
+    pose per line: 16 numbers, a row-major 4x4, or 12, the top 3x4; line ``k`` (0-based) is
+    frame ``k``, so a partial or subsampled copy of ``depth/`` with the whole file loads; with
+    as many lines as images, the i-th image takes the i-th line) or else ``pose/<stem>.txt``
+    (a 4x4 each). ``pose_convention`` says what they are:
     ``T_W_C`` (camera-to-world, the default) or ``T_C_W`` (world-to-camera, e.g. OpenCV
     ``solvePnP`` / COLMAP extrinsics; inverted on load); camera axes are OpenCV's either way.
     ``intrinsics.json``: ``{"fx", "fy", "cx", "cy"}`` or ``{"K": [[fx,0,cx],[0,fy,cy],[0,0,1]]}``
@@ -70,14 +74,16 @@ class FolderDataset(Dataset):
                 if p.stem in files:
                     raise DataError(f"{p}: depth/ holds both {files[p.stem].name} and {p.name}")
                 files[p.stem] = p
-        names = sorted(files, key=stem_key)
-        self._files = [files[n] for n in names]
+        self._files = sort_frames(files.values())
+        names = [p.stem for p in self._files]
         if not names:
             return names
         poses_txt = self.path / "poses.txt"
         if poses_txt.is_file():
-            self._pose_rows = read_pose_rows(poses_txt, (12, 16))
-            check_pose_count(poses_txt, len(self._pose_rows), len(names), "depth/")
+            # row k of poses.txt is frame k (the number ending an image's name)
+            self._pose_rows = poses_by_frame_number(
+                poses_txt, list(enumerate(read_pose_rows(poses_txt, (12, 16)))),
+                [(frame_number(n) or (None, None))[1] for n in names], self._files)
             self._poses_txt = poses_txt
         else:
             self._pose_rows = None

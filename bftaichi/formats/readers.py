@@ -13,6 +13,7 @@ import gzip
 import json
 import math
 import numbers
+import re
 import tokenize
 import warnings
 import zipfile
@@ -300,11 +301,60 @@ def require_files(paths: list[Path], what: str, owners: list[str]) -> None:
                         f"(missing: {', '.join(names[:3])}{more})")
 
 
-def check_pose_count(trajectory: Path, n_poses: int, n_depth: int, depth_folder: str) -> None:
-    """A trajectory file pairs its k-th pose with the k-th depth image: the counts must agree."""
-    if n_poses != n_depth:
-        raise DataError(f"{trajectory}: {n_poses} poses for {n_depth} depth images in {depth_folder} "
-                        f"(one pose per frame, in frame order, is needed)")
+_NUMBERED = re.compile(r"^(.*?)(\d+)$")
+
+
+def frame_number(stem: str) -> tuple[str, int] | None:
+    """``(prefix, number)`` of a file stem that ends in digits (``frame-000010`` and ``frame-10``
+    -> ``("frame-", 10)``, ``depth10`` -> ``("depth", 10)``, ``000010`` -> ``("", 10)``); None
+    for a stem without a number."""
+    m = _NUMBERED.match(stem)
+    return (m.group(1), int(m.group(2))) if m else None
+
+
+def sort_frames(files, stem=lambda p: p.stem) -> list[Path]:
+    """``files`` in frame order: numbered stems by (prefix, number), so ``2`` comes before
+    ``10``; then the others by name. Two files with the same prefix and number
+    (``frame-10`` and ``frame-000010``) are a DataError naming both: two copies of one frame
+    would be fused twice."""
+    keyed = sorted(((frame_number(stem(p)), p.name, p) for p in files),
+                   key=lambda t: (t[0] is None, t[0] or ("", 0), t[1]))
+    for (a, _, pa), (b, _, pb) in zip(keyed, keyed[1:]):
+        if a is not None and a == b:
+            raise DataError(f"{pa} and {pb} have the same frame number {a[1]}: two copies of "
+                            "one frame? keep one of them")
+    return [p for _, _, p in keyed]
+
+
+def poses_by_frame_number(trajectory: Path, entries: list, numbers: list, images: list[Path]) -> list:
+    """The pose of each image from a one-file trajectory.
+
+    ``entries``: ``(frame number, pose record)`` in file order; ``numbers``: each image's frame
+    number (None if its name has none). When there are as many poses as images (a whole
+    sequence, or a trajectory cut to the images), the i-th image takes the i-th pose. Otherwise
+    each image takes the pose of its frame number, so a partial copy (the first N images) or a
+    subsampled one (every k-th image) of a sequence with its full trajectory loads, with one
+    warning giving both counts. DataError names an image without a pose."""
+    if len(entries) == len(images):
+        return [record for _, record in entries]
+    by_number = {}
+    for n, record in entries:
+        if n in by_number:
+            raise DataError(f"{trajectory}: two poses for frame number {n}")
+        by_number[n] = record
+    for n, image in zip(numbers, images):
+        if n is None:
+            raise DataError(f"{trajectory}: {len(entries)} poses for {len(images)} depth images, and "
+                            f"{image.name} has no frame number in its name to take its pose by")
+        if n not in by_number:
+            known = sorted(by_number)
+            span = f"frames {known[0]}-{known[-1]}" if known else "no frames"
+            raise DataError(f"{image}: no pose for frame number {n} in {trajectory} "
+                            f"({len(entries)} poses, {span})")
+    warn(f"{trajectory}: {len(entries)} poses for {len(images)} depth images in "
+         f"{images[0].parent}: each image takes the pose of the frame number in its name "
+         "(a partial or subsampled copy of the sequence)")
+    return [by_number[n] for n in numbers]
 
 
 def warn(message: str) -> None:

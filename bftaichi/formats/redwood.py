@@ -4,10 +4,10 @@ Layout (DESIGN.md section 5)
 ----------------------------
 ``redwood`` (Redwood / Open3D RGB-D sequences, :class:`RedwoodDataset`)::
 
-    depth/*.png              uint16 depth in millimetres, frames in file-name order
+    depth/*.png              uint16 depth in millimetres, frames in frame-number order
     color/*.jpg|png          optional colour, same order
     *.log                    Open3D trajectory: per frame a line "id id frame", then 4 lines of a
-                             4x4 T_W_C
+                             4x4 T_W_C; depth/N.png takes the block whose id is N
     camera_intrinsic.json    optional Open3D PinholeCameraIntrinsic (width, height,
                              intrinsic_matrix: 9 values column-major); otherwise PrimeSense
                              (525, 525, 319.5, 239.5, 640x480)
@@ -25,8 +25,8 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import check_K, intrinsics
 from .base import Dataset
-from .readers import (check_pose_count, json_numbers, pose_from_values, read_depth_png, read_json,
-                      read_rows, row_numbers, stem_key, warn)
+from .readers import (frame_number, json_numbers, pose_from_values, poses_by_frame_number,
+                      read_depth_png, read_json, read_rows, row_numbers, sort_frames, stem_key, warn)
 
 
 class RedwoodDataset(Dataset):
@@ -35,7 +35,10 @@ class RedwoodDataset(Dataset):
     Conventions: ``depth/*.png`` uint16 millimetres, ordered by file name (numerically for numeric
     stems), colour the same order in ``color/``; the ``.log`` (Open3D's trajectory format, the
     only ``*.log`` in the folder) holds per frame a line "id id frame" and 4 lines of a 4x4
-    ``T_W_C`` (OpenCV axes), the ``k``-th block for the ``k``-th depth image. Intrinsics: an Open3D
+    ``T_W_C`` (OpenCV axes). A depth image takes the block whose first id is the number ending
+    its name, so a partial or subsampled copy of ``depth/`` with the whole ``.log`` loads (one
+    warning gives both counts); with as many blocks as images, the ``k``-th block goes to the
+    ``k``-th image. Intrinsics: an Open3D
     ``camera_intrinsic.json`` (``width``, ``height``, ``intrinsic_matrix``: 9 numbers column-major,
     as Open3D writes it) or, without it, Open3D's PrimeSense default (with a warning).
     """
@@ -52,7 +55,7 @@ class RedwoodDataset(Dataset):
         return (path / "depth").is_dir() and any(path.glob("*.log"))
 
     def _scan(self) -> list[str]:
-        depth_files = sorted((self.path / "depth").glob("*.png"), key=lambda p: stem_key(p.stem))
+        depth_files = sort_frames((self.path / "depth").glob("*.png"))
         self._files = [p.name for p in depth_files]
         if not depth_files:
             return []
@@ -64,9 +67,14 @@ class RedwoodDataset(Dataset):
         if len(logs) > 1:
             raise DataError(f"{self.path}: several trajectories ({', '.join(p.name for p in logs)}); "
                             f"keep one .log file")
+        if not logs:
+            raise DataError(f"{self.path}: no trajectory (a redwood dataset has {self.looks_for})")
         self._log_path = logs[0]
-        self._poses = self._read_log(self._log_path)
-        check_pose_count(self._log_path, len(self._poses), len(depth_files), "depth/")
+        blocks = self._read_log(self._log_path)
+        # a block's header 'id id frame' starts with its frame number
+        self._poses = poses_by_frame_number(
+            self._log_path, [(frame_id, (lineno, values)) for frame_id, lineno, values in blocks],
+            [(frame_number(p.stem) or (None, None))[1] for p in depth_files], depth_files)
         k_path = self.path / "camera_intrinsic.json"
         if k_path.is_file():
             cam = read_json(k_path, "camera intrinsics")
@@ -84,8 +92,9 @@ class RedwoodDataset(Dataset):
         return [p.stem for p in depth_files]
 
     @staticmethod
-    def _read_log(path: Path) -> list[tuple[int, np.ndarray]]:
-        """(line number of the header, 16 numbers) per block of an Open3D .log trajectory."""
+    def _read_log(path: Path) -> list[tuple[int, int, np.ndarray]]:
+        """(frame id, line number of the header, 16 numbers) per block of an Open3D .log
+        trajectory; the frame id is the first number of the block's header."""
         rows = read_rows(path, "trajectory")
         if len(rows) % 5:
             raise DataError(f"{path}: an Open3D .log has 5 lines per frame ('id id frame' and 4 rows "
@@ -93,9 +102,10 @@ class RedwoodDataset(Dataset):
         poses = []
         for b in range(0, len(rows), 5):
             lineno, header = rows[b]
-            row_numbers(header, path, lineno, "frame header ('id id frame')", (3,))
+            ids = row_numbers(header, path, lineno, "frame header ('id id frame')", (3,))
             values = [row_numbers(tokens, path, n, "pose", (4,)) for n, tokens in rows[b + 1: b + 5]]
-            poses.append((lineno, np.concatenate(values)))
+            frame_id = int(ids[0]) if float(ids[0]).is_integer() else None
+            poses.append((frame_id, lineno, np.concatenate(values)))
         return poses
 
     def _read_frame(self, j: int):

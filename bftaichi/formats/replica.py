@@ -6,7 +6,7 @@ Layout (DESIGN.md section 5)
 
     results/depth000000.png  uint16 depth, 6553.5 units per metre
     results/frame000000.jpg  optional colour
-    traj.txt                 one row-major 4x4 T_W_C (OpenCV camera) per line, in frame order
+    traj.txt                 one row-major 4x4 T_W_C (OpenCV camera) per line: line k is frame k
     cam_params.json          optional {"camera": {"w","h","fx","fy","cx","cy","scale"}}; otherwise
                              NICE-SLAM's camera 1200x680, fx = fy = 600, cx = 599.5, cy = 339.5
 
@@ -21,8 +21,8 @@ from pathlib import Path
 from ..errors import DataError
 from ..geometry import check_K, intrinsics
 from .base import Dataset
-from .readers import (check_pose_count, json_numbers, pose_from_values, read_depth_png, read_json,
-                      read_pose_rows)
+from .readers import (json_numbers, poses_by_frame_number, pose_from_values, read_depth_png,
+                      read_json, read_pose_rows, sort_frames)
 
 
 class ReplicaDataset(Dataset):
@@ -30,8 +30,11 @@ class ReplicaDataset(Dataset):
 
     Conventions: ``results/depthNNNNNN.png`` uint16 with 6553.5 units per metre (NICE-SLAM's
     ``png_depth_scale``); ``traj.txt`` one row-major 4x4 ``T_W_C`` per line, frame ``k`` the
-    ``k``-th line. Those poses already use OpenCV camera axes; NICE-SLAM flips the y and z axes
-    itself because it renders with OpenGL axes, and bftaichi does not. Intrinsics: NICE-SLAM's
+    ``k``-th line (0-based). An image takes the line of the frame number in its name, so a
+    partial or subsampled copy of ``results/`` with the whole ``traj.txt`` loads (one warning
+    gives both counts); with as many lines as images, the i-th image takes the i-th line. Those
+    poses already use OpenCV camera axes; NICE-SLAM flips the y and z axes itself because it
+    renders with OpenGL axes, and bftaichi does not. Intrinsics: NICE-SLAM's
     Replica camera (:attr:`NICE_SLAM_K`, 1200x680) unless a ``cam_params.json`` (Replica's
     ``{"camera": {"w","h","fx","fy","cx","cy","scale"}}``) is present; its ``scale`` is the depth
     scale unless ``depth_scale`` is given.
@@ -50,14 +53,15 @@ class ReplicaDataset(Dataset):
 
     def _scan(self) -> list[str]:
         results = self.path / "results"
-        numbered = sorted((int(m.group(1)), m.group(1)) for p in results.glob("depth*.png")
-                          if (m := self._DEPTH_RE.match(p.name)))
-        self._numbers = [digits for _, digits in numbered]
-        if not numbered:
+        files = sort_frames(p for p in results.glob("depth*.png") if self._DEPTH_RE.match(p.name))
+        self._numbers = [self._DEPTH_RE.match(p.name).group(1) for p in files]
+        if not files:
             return []
         self._traj_path = self.path / "traj.txt"
-        self._poses = read_pose_rows(self._traj_path)
-        check_pose_count(self._traj_path, len(self._poses), len(numbered), "results/")
+        rows = read_pose_rows(self._traj_path)
+        # line k of traj.txt is frame k (depth{k:06d}.png), as NICE-SLAM indexes it
+        self._poses = poses_by_frame_number(self._traj_path, list(enumerate(rows)),
+                                            [int(d) for d in self._numbers], files)
         cam_path = self.path / "cam_params.json"
         if cam_path.is_file():
             cam = read_json(cam_path, "camera parameters")

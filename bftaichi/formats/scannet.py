@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import DataError
 from .base import Dataset
-from .readers import parse_numbers, read_depth_png, read_K_txt, read_pose_txt, require_files, stem_key, warn
+from .readers import parse_numbers, read_depth_png, read_K_txt, read_pose_txt, require_files, sort_frames, warn
 
 
 class ScanNetDataset(Dataset):
@@ -45,7 +45,7 @@ class ScanNetDataset(Dataset):
                 and (path / "intrinsic" / "intrinsic_depth.txt").is_file())
 
     def _scan(self) -> list[str]:
-        names = sorted((p.stem for p in (self.path / "depth").glob("*.png")), key=stem_key)
+        names = [p.stem for p in sort_frames((self.path / "depth").glob("*.png"))]
         if not names:
             return names
         pose_paths = [self.path / "pose" / f"{n}.txt" for n in names]

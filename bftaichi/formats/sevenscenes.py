@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import intrinsics
 from .base import Dataset
-from .readers import read_depth_png, read_K_txt, read_pose_txt, require_files, warn
+from .readers import read_depth_png, read_K_txt, read_pose_txt, require_files, sort_frames, warn
 
 
 class SevenScenesDataset(Dataset):
@@ -75,9 +75,9 @@ class SevenScenesDataset(Dataset):
         sequences = self._sequences()
         for folder in sequences:
             prefix = "" if folder == self.path else folder.name + "/"
-            numbered = sorted((int(m.group(1)), p.name[: -len(".depth.png")])
-                              for p in folder.iterdir() if (m := self._DEPTH_RE.match(p.name)))
-            names += [prefix + name for _, name in numbered]
+            files = sort_frames((p for p in folder.iterdir() if self._DEPTH_RE.match(p.name)),
+                                stem=lambda p: p.name[: -len(".depth.png")])
+            names += [prefix + p.name[: -len(".depth.png")] for p in files]
         if not names:
             return names
         require_files([self.path / f"{n}.pose.txt" for n in names], "pose file", names)
