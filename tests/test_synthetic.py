@@ -241,6 +241,23 @@ def test_frames_are_reproducible_and_seeded():
     np.testing.assert_array_equal(SyntheticDataset(cfg8).clean_depth(2), ds.clean_depth(2))
 
 
+def test_frames_kept_in_memory_are_the_rendered_ones_and_not_aliased():
+    """A run reads each frame several times: the kept frame must equal a fresh render, and a
+    caller writing into a frame it got must not change what the next caller gets."""
+    cfg = SyntheticConfig(mesh="torus", radius_m=0.3, n_views=3, width=80, height=60, fx=70.0,
+                          fy=70.0, cx=39.5, cy=29.5, noise="kinect", dropout=0.1, seed=7)
+    ds = SyntheticDataset(cfg)
+    first = ds[1].depth_m
+    first[:] = -1.0  # a caller scribbling on its copy
+    np.testing.assert_array_equal(ds[1].depth_m, SyntheticDataset(cfg)[1].depth_m)
+    assert (ds[1].depth_m >= 0).all()
+    small = SyntheticDataset(cfg)
+    small.CACHE_BYTES = 80 * 60 * 4  # room for one frame: the others are rendered every time
+    for i in (0, 1, 2, 2, 1):
+        np.testing.assert_array_equal(small[i].depth_m, ds[i].depth_m)
+    assert list(small._cache) == [0]
+
+
 def test_write_7scenes_round_trip(tmp_path):
     cfg = SyntheticConfig(mesh="tabletop", n_views=3, width=64, height=48, fx=52.5, fy=52.5,
                           cx=31.5, cy=23.5, noise="gaussian", quantization_m=0.0, dropout=0.05)

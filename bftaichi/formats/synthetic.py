@@ -364,6 +364,9 @@ class SyntheticDataset:
         name: ``"synthetic:<cfg.mesh>"``. gt_mesh_path: None (the mesh lives in memory).
     """
 
+    CACHE_BYTES = 256 * 2 ** 20
+    """Rendered frames kept in memory (the first ones, up to this many bytes of depth)."""
+
     def __init__(self, cfg: SyntheticConfig, depth_min_m: float = 0.1, depth_max_m: float = 6.0):
         cfg.check()
         if cfg.seed < 0:
@@ -381,6 +384,9 @@ class SyntheticDataset:
         self.gt_mesh_path = None
         self.name = f"synthetic:{cfg.mesh}"
         self._renderer = DepthRenderer(self.gt_mesh)
+        # a run reads every frame several times (memory estimate, checks, TSDF, observation,
+        # misfit and noise-fit passes): keep the rendered frames up to CACHE_BYTES
+        self._cache: dict[int, np.ndarray] = {}
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -406,10 +412,14 @@ class SyntheticDataset:
 
     def __getitem__(self, i: int) -> Frame:
         i = self._index(i)
-        rng = np.random.default_rng([self.cfg.seed, i])
-        depth = add_noise(self._render(i), self.cfg, rng)
-        return Frame(index=i, name=f"frame-{i:06d}",
-                     depth_m=clean_depth(depth, self.depth_min_m, self.depth_max_m),
+        depth = self._cache.get(i)
+        if depth is None:
+            rng = np.random.default_rng([self.cfg.seed, i])
+            depth = clean_depth(add_noise(self._render(i), self.cfg, rng), self.depth_min_m,
+                                self.depth_max_m)
+            if (len(self._cache) + 1) * depth.nbytes <= self.CACHE_BYTES:
+                self._cache[i] = depth
+        return Frame(index=i, name=f"frame-{i:06d}", depth_m=depth.copy(),
                      K=self.K.copy(), T_W_C=self.poses[i].copy(), rgb=None)
 
     def __iter__(self) -> Iterator[Frame]:
