@@ -119,16 +119,17 @@ STRICT_HELP = ("Refuse input that fails a plausibility check (8-bit depth, depth
 
 @contextlib.contextmanager
 def _warnings_on_stderr():
-    """Print the plausibility warnings of a run as ``warning: ...`` on stderr, every time (also
-    with ``-q``: it silences progress and summary, not what may be wrong with the result)."""
-    from .plausibility import PlausibilityWarning
+    """Print bftaichi's warnings (plausibility checks, datasets, locks) as ``warning: ...`` on
+    stderr, every time (also with ``-q``: it silences progress and summary, not what may be
+    wrong with the result)."""
+    from .errors import BftaichiWarning
 
     with warnings.catch_warnings():
-        warnings.simplefilter("always", PlausibilityWarning)
+        warnings.simplefilter("always", BftaichiWarning)
         show_other = warnings.showwarning
 
         def show(message, category, filename, lineno, file=None, line=None):
-            if issubclass(category, PlausibilityWarning):
+            if issubclass(category, BftaichiWarning):
                 click.echo(f"warning: {message}", err=True)
             else:
                 show_other(message, category, filename, lineno, file, line)
@@ -165,8 +166,7 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
 
     cfg = load_config(scene, _overrides(arch, sets) + (["run.strict=true"] if strict else []))
     out = Path(out or Path("out") / cfg.scene.name)
-    with _warnings_on_stderr():
-        report = run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
+    report = run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(out, report, verbose)
 
@@ -219,8 +219,7 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
         extra.append("run.strict=true")
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
                                                gt_mesh) + extra + _overrides(arch, sets))
-    with _warnings_on_stderr():
-        report = run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
+    report = run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(Path(out), report, verbose)
 
@@ -580,7 +579,7 @@ def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     folder.command_line = " ".join(["bftaichi", *args])  # names a folder's lock holder
     try:
-        with signals.handled():  # SIGTERM, SIGHUP: as Ctrl-C
+        with signals.handled(), _warnings_on_stderr():  # SIGTERM, SIGHUP: as Ctrl-C
             cli.main(args=args, prog_name="bftaichi", standalone_mode=False)
     except (click.exceptions.Abort, KeyboardInterrupt) as e:
         click.echo(signals.describe_interrupt(e), err=True)

@@ -20,3 +20,8 @@ class DataError(BftaichiError):
 
 class NoSurfaceError(BftaichiError):
     """The frames were read but no voxel was observed, so there is no surface to mesh."""
+
+
+class BftaichiWarning(UserWarning):
+    """Something probably wrong that does not stop the work (a partial copy of a sequence, a
+    default camera, a stale lock broken); the CLI prints ``warning: <message>`` on stderr."""

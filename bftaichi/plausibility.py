@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import backend
-from .errors import BftaichiError
+from .errors import BftaichiError, BftaichiWarning
 from .formats.base import Dataset, misfit_text, principal_point_misfit
 from .formats.readers import invert_rigid
 
@@ -129,7 +129,7 @@ class Finding:
         return f"{self.message} [{self.code}]"
 
 
-class PlausibilityWarning(UserWarning):
+class PlausibilityWarning(BftaichiWarning):
     """An input that is read without error but is probably wrong (:class:`Finding`)."""
 
 

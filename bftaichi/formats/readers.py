@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..errors import DataError
+from ..errors import BftaichiWarning, DataError
 from ..geometry import check_K, check_pose
 
 
@@ -358,10 +358,10 @@ def poses_by_frame_number(trajectory: Path, entries: list, numbers: list, images
 
 
 def warn(message: str) -> None:
-    """A UserWarning about a dataset, attributed to the code that opened it."""
+    """A BftaichiWarning about a dataset, attributed to the code that opened it."""
     # warn <- _scan (or a helper of it) <- Dataset.__init__ <- ... : 5 reaches open_dataset's caller
     # for most formats; the message names the folder either way.
-    warnings.warn(message, UserWarning, stacklevel=5)
+    warnings.warn(message, BftaichiWarning, stacklevel=5)
 
 
 def folder_listing(path: Path, limit: int = 12) -> str:

@@ -49,7 +49,7 @@ import time
 import warnings
 from pathlib import Path
 
-from ..errors import BftaichiError, DataError
+from ..errors import BftaichiError, BftaichiWarning, DataError
 
 try:
     import fcntl
@@ -162,7 +162,7 @@ def _acquire(out: Path) -> int | None:
             if e.errno in _NO_LOCKS:
                 warnings.warn(f"{out}: the file system does not support locks ({e.strerror}); "
                               "writing without one: do not run two commands into this folder "
-                              "at once", UserWarning, stacklevel=4)
+                              "at once", BftaichiWarning, stacklevel=4)
                 return None
             if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise DataError(f"cannot lock output folder {out}: {e.strerror or e}") from None
@@ -181,7 +181,7 @@ def _acquire(out: Path) -> int | None:
             state = {False: "no longer runs", None: "is gone"}.get(_alive(stale) if stale else None,
                                                                   "is gone")
             warnings.warn(f"{out}: broke the stale lock of {_describe(stale)}, which {state}",
-                          UserWarning, stacklevel=4)
+                          BftaichiWarning, stacklevel=4)
         data = json.dumps(_holder_record()).encode()
         os.ftruncate(fd, 0)
         os.pwrite(fd, data, 0)
