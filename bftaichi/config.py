@@ -342,10 +342,14 @@ class NBVConfig:
     """``bftaichi scan``: views added after the initial ones."""
 
     initial_views: int = 2
-    """``bftaichi scan``: views every policy starts from (the same, seeded by ``run.seed``)."""
+    """``bftaichi scan``: views every policy starts from (the same for every policy)."""
 
     random_seeds: int = 3
     """``bftaichi scan``: the ``random`` policy's result is the mean over this many seeds."""
+
+    initial_seeds: int = 3
+    """``bftaichi scan``: the scan is repeated from this many draws of the initial views
+    (seeds ``run.seed`` + 0, 1, ...); summaries give the mean and std over them."""
 
     def check(self) -> None:
         check_choice("nbv.candidates", self.candidates, ("sphere", "hemisphere", "ring", "file"))
@@ -370,6 +374,7 @@ class NBVConfig:
         check_range("nbv.steps", self.steps, 1, 1000)
         check_range("nbv.initial_views", self.initial_views, 1, 1000)
         check_range("nbv.random_seeds", self.random_seeds, 1, 100)
+        check_range("nbv.initial_seeds", self.initial_seeds, 1, 100)
 
 
 @dataclass

@@ -235,18 +235,33 @@ def test_scan_smoke_runs_every_policy(tmp_path, capsys):
     out = tmp_path / "scan"
     sets = [a for s in SPHERE_SETS if not s.startswith("scene.frames") for a in ("--set", s)]
     assert main(["scan", "-q", "--out", str(out), "--steps", "2", "--candidates", "8",
-                 *sets, "--set", "nbv.random_seeds=2", "--set", "eval.n_samples=3000"]) == 0
+                 *sets, "--set", "nbv.random_seeds=2", "--set", "eval.n_samples=3000",
+                 "--set", "nbv.initial_seeds=2"]) == 0
     report = json.loads((out / "scan.json").read_text())
     assert (out / "scan.png").stat().st_size > 1000
     assert set(report["policies"]) == {"bayes", "coverage", "farthest", "random"}
+    draws = report["initial_draws"]
+    assert len(draws) == 2 and draws[0] == report["initial_views"] and draws[0] != draws[1]
     for policy, res in report["policies"].items():
         views = [s["views"] for s in res["steps"]]
         assert views == [2, 3, 4], policy
         for run in res["runs"]:
-            assert run["views"][:2] == report["initial_views"]
+            assert run["views"][:2] == draws[run["initial_draw"]]
             assert len(set(run["views"])) == 4  # never the same view twice
-        assert 0 <= res["summary"]["auc_f10"] <= 1
-    assert len(report["policies"]["random"]["runs"]) == 2
+            for step in run["steps"]:  # surface coverage: recall at 2 mm <= 5 mm <= 10 mm
+                assert 0 <= step["recall@2mm"] <= step["recall@5mm"] <= step["recall@10mm"] <= 1
+                assert ("calibration" in step) == (policy == "bayes")
+        s = res["summary"]
+        assert 0 <= s["auc_f10"] <= 1 and 0 <= s["auc_recall5"] <= 1
+        runs = len(res["runs"])
+        assert s["n_runs"] == runs == (4 if policy == "random" else 2)
+        r5 = [np.mean([(a + b) / 2 for a, b in zip(c[:-1], c[1:])]) for c in
+              ([st["recall@5mm"] for st in run["steps"]] for run in res["runs"])]
+        assert s["auc_recall5"] == pytest.approx(np.mean(r5))  # unit views: mean of trapezoids
+        assert s["std"]["auc_recall5"] == pytest.approx(np.std(r5))
+        assert 0 <= s["reached"]["views_to_recall5_0.95"] <= 1
+    cal = report["policies"]["bayes"]["runs"][0]["steps"][-1]["calibration"]
+    assert 0 <= cal["coverage@1sigma"] <= cal["coverage@2sigma"] <= cal["coverage@3sigma"] <= 1
     # more views never make the bayes scan's completeness much worse
     comp = [s["completeness_mm"] for s in report["policies"]["bayes"]["steps"]]
     assert comp[-1] <= comp[0] * 1.05

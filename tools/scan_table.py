@@ -6,10 +6,13 @@
     python tools/scan_table.py scenes/bunny.toml --steps 4      # one scene, fewer steps
     python tools/scan_table.py --markdown scan.md --set nbv.random_seeds=5
 
-Columns: the area under F@10mm against views (trapezoid, divided by the views spanned, so it
-is the mean F@10mm over the scan), the views needed to reach F@10mm >= 0.9 ("-" if never), and
-the final F@10mm and completeness. ``random`` is the mean curve over ``nbv.random_seeds``
-seeds. The scan.json and scan.png of each scene are kept in ``--out``/scan-<scene>/.
+Columns, each the mean ± std over the runs (``nbv.initial_seeds`` draws of the initial views;
+for ``random`` also ``nbv.random_seeds`` seeds): the area under recall@5mm against views
+(trapezoid, divided by the views spanned, so it is the mean recall over the scan), the views
+needed to reach 95 % recall@5mm (mean over the runs that reached it, with the fraction that
+did), the final recall at 5 and 2 mm, the area under F@10mm and the final completeness; then
+the seconds per step (fuse + solve + choose). The scan.json and scan.png of each scene are
+kept in ``--out``/scan-<scene>/.
 """
 
 from __future__ import annotations
@@ -36,8 +39,13 @@ def main(argv=None) -> int:
     import bftaichi as bf
     from bftaichi.planning.scan import scan
 
-    lines = ["| scene | policy | AUC F@10mm | views to F@10mm >= 0.9 | final F@10mm | "
-             "final completeness (mm) | seconds |", "|---|---|---|---|---|---|---|"]
+    lines = ["| scene | policy | runs | AUC recall@5mm | views to 95 % recall@5mm (reached) | "
+             "final recall@5mm | final recall@2mm | AUC F@10mm | final completeness (mm) | "
+             "s/step |", "|---|---|---|---|---|---|---|---|---|---|"]
+
+    def pm(s, key, fmt=".4f"):
+        v, sd = s[key], s["std"][key]
+        return "-" if v is None else f"{v:{fmt}} ± {sd:{fmt}}"
     for path in args.scenes:
         cfg = bf.load_config(path, [*args.sets, f"nbv.steps={args.steps}",
                                     f"nbv.n_candidates={args.candidates}"])
@@ -45,12 +53,14 @@ def main(argv=None) -> int:
         report = scan(cfg, out, tuple(args.policies.split(",")), overwrite=True)
         for policy, res in report["policies"].items():
             s = res["summary"]
-            secs = sum(st.get("seconds_fuse", 0) + st.get("seconds_choose", 0)
-                       for run in res["runs"] for st in run["steps"])
-            name = policy if len(res["runs"]) == 1 else f"{policy} (mean of {len(res['runs'])})"
-            lines.append(f"| {report['scene']} | {name} | {s['auc_f10']:.4f} | "
-                         f"{s['views_to_f10_0.9'] or '-'} | {s['final_f10']:.3f} | "
-                         f"{s['final_completeness_mm']:.2f} | {secs:.0f} |")
+            steps = [st for run in res["runs"] for st in run["steps"][:-1]]
+            per_step = sum(st["seconds_fuse"] + st["seconds_choose"] for st in steps) / len(steps)
+            reached = s["reached"]["views_to_recall5_0.95"]
+            lines.append(f"| {report['scene']} | {policy} | {s['n_runs']} | "
+                         f"{pm(s, 'auc_recall5')} | {pm(s, 'views_to_recall5_0.95', '.1f')} "
+                         f"({reached:.0%}) | {pm(s, 'final_recall5', '.3f')} | "
+                         f"{pm(s, 'final_recall2', '.3f')} | {pm(s, 'auc_f10')} | "
+                         f"{pm(s, 'final_completeness_mm', '.2f')} | {per_step:.2f} |")
         print(f"{report['scene']}: initial views {report['initial_views']}, "
               f"{report['candidates']} candidates at {report['radius_m']} m; {out}/scan.png",
               file=sys.stderr)
