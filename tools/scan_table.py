@@ -11,7 +11,7 @@ for ``random`` also ``nbv.random_seeds`` seeds): the area under recall@5mm again
 (trapezoid, divided by the views spanned, so it is the mean recall over the scan), the views
 needed to reach 95 % recall@5mm (mean over the runs that reached it, with the fraction that
 did), the final recall at 5 and 2 mm, the area under F@10mm and the final completeness; then
-the seconds per step (fuse + solve + choose). The scan.json and scan.png of each scene are
+the seconds per step (the solve and the choice of the next view). The scan.json and scan.png of each scene are
 kept in ``--out``/scan-<scene>/.
 """
 
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
 
     lines = ["| scene | policy | runs | AUC recall@5mm | views to 95 % recall@5mm (reached) | "
              "final recall@5mm | final recall@2mm | AUC F@10mm | final completeness (mm) | "
-             "s/step |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "s/step (solve + choose) |", "|---|---|---|---|---|---|---|---|---|---|"]
 
     def pm(s, key, fmt=".4f"):
         v, sd = s[key], s["std"][key]
