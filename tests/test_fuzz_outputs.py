@@ -16,8 +16,9 @@ One tiny run (tests/robustness_cases.py ``TINY``, with 4 NBV candidates) is made
 every example starts from a fresh copy of its files.
 
 Examples per (file, reader), the ``N_*`` constants (derandomized), and their outcomes in a
-run of this whole file (``works`` / ``clear error``; a different selection of tests draws other
-examples)::
+run of this whole file (``works`` / ``clear error``). Hypothesis derives the draw from each
+test's code, so editing a test, or running another selection, draws other examples and moves
+the split; recorded before the assertion helpers were renamed::
 
     file            reader                             examples          works  clear error
     band.npz        Posterior.load                     N_API        150     15          135
@@ -185,7 +186,7 @@ def damaged_file(work: "Work", name: str, data) -> Path:
 # Outcomes
 # --------------------------------------------------------------------------------------------
 
-def _api(fn, path: Path) -> str:
+def _assert_ok_or_clear(fn, path: Path) -> str:
     """Call ``fn``: "works", or "clear error" for a BftaichiError naming ``path`` (any other
     exception escapes and fails the test)."""
     try:
@@ -198,7 +199,7 @@ def _api(fn, path: Path) -> str:
     return "works"
 
 
-def _command(argv: list, path: Path, capsys, names_file: bool = True) -> str:
+def _assert_cli_ok_or_clear(argv: list, path: Path, capsys, names_file: bool = True) -> str:
     """Run ``bftaichi argv`` in-process: exit 0 ("works") or exit 2 with ``error: ...`` naming
     ``path`` ("clear error"; ``names_file=False``: any clear error). No traceback either way."""
     capsys.readouterr()
@@ -266,7 +267,7 @@ API_CASES = [(f, r) for f, readers in API_READERS.items() for r in readers]
 @given(data=st.data())
 def test_a_damaged_output_reads_or_gives_a_clear_error(work, name, reader, data):
     path = damaged_file(work, name, data)
-    _api(lambda: API_READERS[name][reader](path), path)
+    _assert_ok_or_clear(lambda: API_READERS[name][reader](path), path)
 
 
 VIEW_FILES = ("band.npz", "mesh.ply", "tsdf_mesh.ply", "report.json", "nbv.json")
@@ -279,7 +280,8 @@ def test_view_of_a_damaged_run_writes_the_page_or_gives_a_clear_error(work, caps
                                                                       data):
     path = damaged_file(work, name, data)
     page = work.root / "page.html"
-    if _command(["view", work.out, "--html", page, "--band"], path, capsys) == "works":
+    argv = ["view", work.out, "--html", page, "--band"]
+    if _assert_cli_ok_or_clear(argv, path, capsys) == "works":
         assert "MeshCat.Viewer" in page.read_text()
 
 
@@ -288,8 +290,8 @@ def test_view_of_a_damaged_run_writes_the_page_or_gives_a_clear_error(work, caps
 @given(data=st.data())
 def test_eval_of_a_damaged_mesh_gives_metrics_or_a_clear_error(work, capsys, name, data):
     path = damaged_file(work, name, data)
-    _command(["eval", work.out / "mesh.ply", work.out / "tsdf_mesh.ply", "--samples", "500",
-              "--json"], path, capsys)
+    _assert_cli_ok_or_clear(["eval", work.out / "mesh.ply", work.out / "tsdf_mesh.ply",
+                             "--samples", "500", "--json"], path, capsys)
 
 
 @pytest.mark.parametrize("name", ("band.npz", "config.toml", "report.json"))
@@ -306,7 +308,7 @@ def test_nbv_of_a_damaged_run_ranks_or_gives_a_clear_error(work, capsys, name, d
             names_file = False
         except BftaichiError:
             pass
-    if _command(["nbv", work.out, "-q"], path, capsys, names_file) == "works":
+    if _assert_cli_ok_or_clear(["nbv", work.out, "-q"], path, capsys, names_file) == "works":
         ranking = read_ranking(work.out / "nbv.json")
         assert len(ranking["candidates"]) >= 1
 
@@ -368,7 +370,7 @@ def band_arrays(run_files) -> Quiet:
 def test_an_inconsistent_band_loads_or_gives_a_clear_error(band_arrays, work, data):
     path = work.damage("band.npz", b"")
     write_npz(path, **data.draw(_inconsistent_band(band_arrays), label="arrays"))
-    _api(lambda: _load_posterior(path), path)
+    _assert_ok_or_clear(lambda: _load_posterior(path), path)
 
 
 @_settings(N_VIEW)
@@ -377,7 +379,8 @@ def test_view_of_an_inconsistent_band_gives_a_page_or_a_clear_error(band_arrays,
                                                                      data):
     path = work.damage("band.npz", b"")
     write_npz(path, **data.draw(_inconsistent_band(band_arrays), label="arrays"))
-    _command(["view", work.out, "--html", work.root / "page.html", "--band"], path, capsys)
+    argv = ["view", work.out, "--html", work.root / "page.html", "--band"]
+    _assert_cli_ok_or_clear(argv, path, capsys)
 
 
 # --------------------------------------------------------------------------------------------
@@ -453,7 +456,7 @@ USER_READERS = {"load_mesh": _load_mesh, "read_mesh_ply": _read_ply, "make_mesh"
 def test_a_users_mesh_file_reads_or_gives_a_clear_error(tmp_path, reader, content):
     path = tmp_path / "user.ply"
     path.write_bytes(content)
-    _api(lambda: USER_READERS[reader](path), path)
+    _assert_ok_or_clear(lambda: USER_READERS[reader](path), path)
 
 
 @pytest.mark.parametrize("role", ("PRED", "GT"))
@@ -464,7 +467,7 @@ def test_eval_of_a_users_mesh_gives_metrics_or_a_clear_error(work, capsys, role,
     path = work.root / "user.ply"
     path.write_bytes(content)
     pred, gt = (path, good) if role == "PRED" else (good, path)
-    _command(["eval", pred, gt, "--samples", "300", "--json"], path, capsys)
+    _assert_cli_ok_or_clear(["eval", pred, gt, "--samples", "300", "--json"], path, capsys)
 
 
 # --------------------------------------------------------------------------------------------

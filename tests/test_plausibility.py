@@ -250,7 +250,7 @@ def test_gpu_fallback_is_recorded_as_cpu_and_warns(tmp_path, arch):
 # No warning on the shipped data
 # --------------------------------------------------------------------------------------------
 
-def _silent(cfg, frames):
+def _assert_silent(cfg, frames):
     with warnings.catch_warnings():
         warnings.simplefilter("error", PlausibilityWarning)
         checks = check_inputs(cfg, frames)
@@ -267,7 +267,7 @@ def test_no_warning_on_the_redkitchen_frames(tmp_path):
     assert report["warnings"] == [] and report["machine"]["arch"] == "cpu"
     # all 500 frames with the scene file's range; the margins of the consistency check
     cfg = load_config(ROOT / "scenes" / "redkitchen.toml")
-    c = _silent(cfg, open_frames(cfg)).measured["consistency"]
+    c = _assert_silent(cfg, open_frames(cfg)).measured["consistency"]
     assert c["pairs"] >= 10
     assert c["given"]["conflict"] < GIVEN_CONFLICT / 3 < GIVEN_CONFLICT < c["T_C_W"]["conflict"]
     assert c["given"]["agree"] > c["depth_x10"]["agree"] + 0.1
@@ -279,7 +279,7 @@ def test_no_warning_on_the_shipped_synthetic_scenes(path):
         pytest.skip("a recorded dataset (test_no_warning_on_the_redkitchen_frames)")
     for sets in ([], list(TINY)):
         cfg = load_config(path, sets)
-        _silent(cfg, open_frames(cfg))
+        _assert_silent(cfg, open_frames(cfg))
 
 
 @pytest.mark.parametrize("name", list(SPECS))
@@ -287,7 +287,7 @@ def test_no_warning_on_any_format_fixture(tmp_path, scene, name):
     root = write(tmp_path, scene, name)
     ds = load(root, name)
     cfg = load_config(None, ["scene.source=dataset", f"scene.data={json.dumps(str(root))}"])
-    checks = _silent(cfg, ds)
+    checks = _assert_silent(cfg, ds)
     assert checks.measured["consistency"]["pairs"] >= 3  # the check ran on overlapping frames
 
 

@@ -52,8 +52,8 @@ def load_mesh(path: str | os.PathLike, surface: bool = False):
         raise DataError(f"mesh file {path} is not a file")
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
-    # trimesh's format parsers raise many exception types (ValueError, IndexError, KeyError,
-    # NotImplementedError for an unknown format, struct.error) on a malformed file.
+    # trimesh's format parsers raise many exception types on a malformed file (ValueError,
+    # IndexError, KeyError, struct.error; an unknown file type raises its own error too)
     except Exception as e:  # noqa: BLE001 - re-raised as DataError naming the file
         raise DataError(f"cannot read mesh file {path}: {type(e).__name__}: {e}") from e
     return check_mesh_file(mesh, path, surface)

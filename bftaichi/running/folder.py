@@ -265,10 +265,14 @@ def recover(out: str | os.PathLike, *, locked: bool = False) -> bool:
         except OSError as e:
             raise DataError(f"{out} holds an interrupted commit ({JOURNAL}) that cannot be "
                             f"completed: {e.strerror or e}") from None
-    for name in (PREVIOUS, STAGING):
-        if (out / name).exists():
-            shutil.rmtree(out / name, ignore_errors=True)
+    _remove_leftovers(out)
     return journal is not None
+
+
+def _remove_leftovers(out: Path) -> None:
+    """Delete what a writer staged and the previous outputs a commit moved aside."""
+    for name in (STAGING, PREVIOUS):
+        shutil.rmtree(out / name, ignore_errors=True)
 
 
 def _read_journal(out: Path) -> dict | None:
@@ -402,8 +406,7 @@ class Staging:
 
     def discard(self) -> None:
         """Delete what is staged, and the previous outputs a commit moved aside."""
-        for name in (STAGING, PREVIOUS):
-            shutil.rmtree(self.out / name, ignore_errors=True)
+        _remove_leftovers(self.out)
 
 
 @contextlib.contextmanager
