@@ -481,8 +481,10 @@ class Observer:
         """(N, 3) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
         residuals ``sum_k a_k s_k min(r_k^2, cap sigma_k^2)`` and noise variances ``sum_k a_k
         s_k sigma_k^2`` (metres^2) and the pixels ``sum_k a_k s_k`` (``s_k``: the sample's
-        share of its pixel), so column 0 / column 2 is the mean squared residual of the pixels
-        reaching the voxel and column 1 / column 2 what the model expects of it."""
+        share of its pixel; the samples within ``MISFIT_NEAR`` voxels of their pixel's surface,
+        :func:`kernels.dataterm.misfit_frame`), so column 0 / column 2 is the mean squared
+        residual of the pixels reaching the voxel and column 1 / column 2 what the model
+        expects of it."""
         if self._R_acc is None or not self.n_voxels:
             return np.zeros((self.n_voxels, 3))
         R = self._R_acc.to_numpy().sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
