@@ -78,7 +78,8 @@ class ObservationConfig:
     fit_noise: bool = True
     """Fit the per-frame noise the depth model does not explain (pose and calibration errors of
     a recorded trajectory, or a noisier sensor) to the frames before observing them
-    (:func:`estimate_extra_noise`: residuals of head-on pixels against the bootstrap). The part
+    (:func:`estimate_extra_noise`: how the residuals of head-on pixels against the bootstrap
+    differ between frames that see one point, so the bootstrap's own error drops out). The part
     neighbouring pixels share (pose, calibration) is modelled as a correlation: a frame's pixels
     over one voxel share it, so each frame tells a voxel at most ``1 / e_corr^2`` however many
     pixels cover it (``sigma_corr_m`` of :class:`kernels.observe.Observer`), instead of a stride
@@ -268,6 +269,11 @@ def _head_on(depth: np.ndarray, K: np.ndarray, cos_min: float = 0.8,
     return ok
 
 
+#: The noise fit casts at least this many pixels of each frame (a smaller ``stride`` on small
+#: frames): fewer leave too few pairs of frames seeing one point for a robust median.
+_MIN_CAST = 5000
+
+
 def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: float,
                          bootstrap_trunc_m: float, depth_range_m: tuple[float, float], *,
                          n_frames: int = 16, stride: int = 4) -> dict:
@@ -276,57 +282,100 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     Recorded trajectories carry pose and calibration errors that no axial noise model holds
     (on 7-Scenes the held-out depth residual is ~2x the Kinect model's sigma). The bootstrap TSDF
     is rendered (:func:`kernels.raycast.raycast_depth`, observed band cells) at up to
-    ``n_frames`` frames spread over the sequence, every ``stride``-th pixel; the residuals
-    ``r = z_tsdf - D`` of the pixels whose surface faces the camera (within 37 deg: there the
-    bootstrap's own rendering error, which grows as ``1 / cos`` along the ray, stays small) with
-    ``|r| < alpha tau`` (gross ones, e.g. at occlusion edges, are no noise) are modelled as
-    ``N(0, sigma_D(D)^2 + e^2)``, ``sigma_D = a + b (D - z0)^2``, and ``e >= 0`` solves
-    ``median(|r| / sqrt(sigma_D^2 + e^2)) = 0.6745`` (the median of a standard normal's
-    ``|x|``; 0 when the model alone already reaches it). Robust to the outliers and
-    deterministic. The TSDF holds the frame itself (in-sample), so ``e`` is biased low by about
-    ``1/n`` of the variance for a point seen in n frames.
+    ``n_frames`` frames spread over the sequence, every ``stride``-th pixel (denser on frames
+    of fewer than ``_MIN_CAST stride^2`` pixels); the residuals
+    ``r = z_tsdf - D`` of the pixels whose surface faces the camera (within 37 deg) with
+    ``|r| < alpha tau`` (gross ones, e.g. at occlusion edges, are no noise) are kept.
 
-    The part of ``e`` that neighbouring pixels share (pose and calibration errors) is the mean
-    product of the residuals of cast pixels ``stride`` apart, ``c`` (independent noise averages
-    out of it): ``e_corr = sqrt(clip(c, 0, e^2))``; the rest, ``sqrt(e^2 - e_corr^2)``, is
-    independent per pixel (:func:`make_observer` splits them).
+    The bootstrap's own error (its bias on curved surfaces, its voxels) is in every residual
+    too, but it is the *same* in every frame that sees a surface point, while a frame's noise
+    and pose error are its own. So residuals are compared in pairs at one surface point: each
+    cast pixel's point is projected into every other cast frame, and where that frame has a
+    cast pixel there that sees the same point (nearest cast pixel, depth within
+    ``max(2 voxels, 3 sigma_D)``), ``d = r_f - r_g`` holds no bootstrap error. The pairs are
+    modelled as ``N(0, sigma_D(D_f)^2 + sigma_D(D_g)^2 + 2 e^2)``, ``sigma_D = a + b (D -
+    z0)^2``, and ``e >= 0`` solves ``median(|d| / sqrt(...)) = 0.6745`` (the median of a
+    standard normal's ``|x|``; 0 when the model alone already reaches it). Robust to the
+    outliers and deterministic. Fitted to the residuals themselves, the bootstrap's error on
+    the development suite's curved objects read as 0.5-0.9 mm of frame noise
+    (docs/measurements.md).
+
+    The part of ``e`` that neighbouring pixels share (pose and calibration errors) is half the
+    mean product of the ``d`` of neighbouring cast pixels (``stride`` apart) of one frame
+    paired with the same other frame, ``c`` (independent noise averages out of it):
+    ``e_corr = sqrt(clip(c, 0, e^2))``; the rest, ``sqrt(e^2 - e_corr^2)``, is independent
+    per pixel (:func:`make_observer` splits them).
 
     Returns ``{"sigma_extra_m": e, "sigma_corr_m": e_corr, "pixels": n, "frames": k,
-    "median_normalised_model": m0}`` (m0: the statistic with ``e = 0``; 0.6745 is
-    calibrated)."""
+    "median_normalised_model": m0}`` (``n`` the pixel pairs; m0: the statistic with
+    ``e = 0``; 0.6745 is calibrated)."""
     from kernels.raycast import raycast_depth
 
     picks = FramePicks(frames, n_frames)
     observed = band.observed.astype(np.uint8)
-    r_all, s_all = [], []
-    lag_sum, lag_n = 0.0, 0
+    cast = []  # per frame: residual, mask and depth at the cast pixels; K; T_W_C
     for f in picks:
         h, w = f.depth_m.shape
+        # at least MIN_CAST pixels per frame: small frames are cast more densely
+        step = int(max(1, min(stride, np.sqrt(h * w / _MIN_CAST))))
         z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
-                          f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=stride)
+                          f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=step)
         D = np.asarray(f.depth_m, np.float64)
-        both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=stride)
+        both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=step)
         res = np.where(both, z - D, 0.0)
         both &= np.abs(res) < bootstrap_trunc_m
-        r_all.append(np.abs(res[both]))
-        s_all.append(obs.axial_sigma_m(D[both]))
-        # products of the residuals of neighbouring cast pixels (stride apart): independent
-        # noise averages out of them, noise the pixels share (pose, calibration) does not
-        g, m = res[::stride, ::stride], both[::stride, ::stride]
-        for a, b, ma, mb in ((g[:, :-1], g[:, 1:], m[:, :-1], m[:, 1:]),
-                             (g[:-1], g[1:], m[:-1], m[1:])):
-            pair = ma & mb
-            lag_sum += float(np.sum(a[pair] * b[pair]))
-            lag_n += int(pair.sum())
-    r = np.concatenate(r_all) if r_all else np.zeros(0)
-    s = np.concatenate(s_all) if s_all else np.zeros(0)
+        cast.append((res[::step, ::step], both[::step, ::step], D[::step, ::step],
+                     np.asarray(f.K, np.float64), np.asarray(f.T_W_C, np.float64), step))
+    d_all, s_all = [], []
+    lag_sum, lag_n = 0.0, 0
+    for i, (g_i, m_i, D_i, K_i, T_i, st_i) in enumerate(cast):
+        v, u = np.nonzero(m_i)
+        if not len(v):
+            continue
+        dep = D_i[v, u]
+        p_w = np.stack([(u * st_i - K_i[0, 2]) / K_i[0, 0] * dep,
+                        (v * st_i - K_i[1, 2]) / K_i[1, 1] * dep, dep], 1) @ T_i[:3, :3].T \
+            + T_i[:3, 3]
+        for g_j, m_j, D_j, K_j, T_j, st_j in cast[i + 1:]:  # each pair of frames once
+            p = (p_w - T_j[:3, 3]) @ T_j[:3, :3]  # into frame j's camera
+            zj = p[:, 2]
+            front = zj > 0
+            cu = np.full(len(p), -1)
+            cv = np.full(len(p), -1)
+            cu[front] = np.rint((K_j[0, 0] * p[front, 0] / zj[front] + K_j[0, 2]) / st_j)
+            cv[front] = np.rint((K_j[1, 1] * p[front, 1] / zj[front] + K_j[1, 2]) / st_j)
+            inside = front & (cu >= 0) & (cv >= 0) & (cu < m_j.shape[1]) & (cv < m_j.shape[0])
+            ok = np.zeros(len(p), bool)
+            ok[inside] = m_j[cv[inside], cu[inside]]
+            sd_i = obs.axial_sigma_m(dep)
+            tol = np.maximum(2.0 * voxel_size_m, 3.0 * sd_i)
+            ok[ok] &= np.abs(D_j[cv[ok], cu[ok]] - zj[ok]) < tol[ok]
+            if not ok.any():
+                continue
+            d = g_i[v[ok], u[ok]] - g_j[cv[ok], cu[ok]]
+            d_all.append(d)
+            s_all.append(np.hypot(sd_i[ok], obs.axial_sigma_m(D_j[cv[ok], cu[ok]])))
+            # neighbouring cast pixels of frame i paired with frame j: the product of their
+            # d keeps what the pixels of a frame share (2 e_corr^2), not independent noise
+            grid = np.zeros(g_i.shape)
+            have = np.zeros(g_i.shape, bool)
+            grid[v[ok], u[ok]], have[v[ok], u[ok]] = d, True
+            for a, b, ma, mb in ((grid[:, :-1], grid[:, 1:], have[:, :-1], have[:, 1:]),
+                                 (grid[:-1], grid[1:], have[:-1], have[1:])):
+                pair = ma & mb
+                lag_sum += 0.5 * float(np.sum(a[pair] * b[pair]))
+                lag_n += int(pair.sum())
+    r_all = np.abs(np.concatenate(d_all)) if d_all else np.zeros(0)
+    # the pair's model sigma holds both frames' sensor noise; e enters it as 2 e^2
+    s_all = np.concatenate(s_all) if s_all else np.zeros(0)
+    r, s = r_all, s_all
     target = 0.6744897501960817  # median of |N(0, 1)|
     if len(r) < 100:
         return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0, "pixels": int(len(r)),
                 "frames": int(len(picks)), "median_normalised_model": None}
 
     def stat(e):
-        return float(np.median(r / np.sqrt(s * s + e * e)))
+        return float(np.median(r / np.sqrt(s * s + 2.0 * e * e)))
 
     m0 = stat(0.0)
     e = 0.0
