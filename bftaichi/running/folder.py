@@ -72,6 +72,8 @@ _NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.EINVAL, errno.EBADF)
 command_line = " ".join([Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python",
                          *sys.argv[1:]])
 
+#: How many times (50 ms apart) a refused writer rereads a lock whose record is still empty.
+_RECORD_WAITS = 20
 _held: dict[tuple, list] = {}  # (resolved folder, thread) -> [fd, depth]: re-entrant per thread
 _held_guard = threading.Lock()
 
@@ -158,6 +160,11 @@ def _acquire(out: Path) -> int | None:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as e:
             holder = _read_record(fd)
+            for _ in range(_RECORD_WAITS):  # the holder writes its record just after locking
+                if holder or e.errno in _NO_LOCKS:
+                    break
+                time.sleep(0.05)
+                holder = _read_record(fd)
             os.close(fd)
             if e.errno in _NO_LOCKS:
                 warnings.warn(f"{out}: the file system does not support locks ({e.strerror}); "
