@@ -417,8 +417,8 @@ def nbv(out_dir, candidates, n_candidates, radius, poses, sets, top, quiet, verb
 @click.argument("scene", required=False, type=click.Path(dir_okay=False))
 @click.option("--out", "-o", type=click.Path(file_okay=False), default=None,
               help="Output folder [default: out/scan-<scene name>].")
-@click.option("--policies", default="bayes,coverage,farthest,random", show_default=True,
-              help="Comma-separated policies: bayes, coverage, farthest, random.")
+@click.option("--policies", default="bayes,coverage,frontier,entropy,farthest,random",
+              show_default=True, help="Comma-separated policies (bftaichi.planning.scan).")
 @click.option("--steps", type=int, default=None, help="Views added after the initial ones "
               "[default: nbv.steps = 12].")
 @click.option("--candidates", "n_candidates", type=int, default=None,

@@ -29,6 +29,7 @@ from .rays import (NO_FACE, check_camera, check_positive, check_stride, clip_to_
                    ray_grid, ray_origin, ray_params)
 
 MAX_CELLS = 1 << 27  # CoverageGrid size limit (128 MB of seen, 512 MB of stamps)
+TALLY = 1 << 16  # a ray crosses at most nx + ny + nz + 1 < 2^16 cells (MAX_CELLS)
 
 
 # -- coverage grid ----------------------------------------------------------------------------
@@ -36,13 +37,15 @@ MAX_CELLS = 1 << 27  # CoverageGrid size limit (128 MB of seen, 512 MB of stamps
 @ti.func
 def _walk_cells(prm: ti.template(), u: ti.i32, v: ti.i32, z_end: ti.f64, seen: ti.template(),
                 stamp: ti.template(), call: ti.i32, counting: ti.template(),
-                first_only: ti.template()) -> ti.i32:
+                first_only: ti.template(), tally: ti.template()) -> ti.i32:
     """Visit every grid cell the ray of pixel (u, v) crosses between camera depths 0 and
     ``z_end``, clipped to the grid box, in order (Amanatides & Woo 3D DDA). ``counting`` False:
     store ``seen = 1`` in each (returns 0). ``counting`` True: stamp each unseen cell with
     ``call`` and return how many cells this thread stamped first (``atomic_max`` on the stamp:
     of all threads reaching a cell in one call exactly one sees an older stamp); with
-    ``first_only`` the walk ends at the first unseen cell (the ray's *frontier* cell)."""
+    ``first_only`` the walk ends at the first unseen cell (the ray's *frontier* cell).
+    ``tally`` (with ``counting``): no stamps; return ``TALLY * unseen + seen``, the cells of
+    each kind the ray crosses (a cell crossed by two rays counts twice)."""
     n = ti.Vector([seen.shape[0], seen.shape[1], seen.shape[2]])
     o = ray_origin(prm)
     m = ray_grid(prm, u, v)
@@ -57,7 +60,9 @@ def _walk_cells(prm: ti.template(), u: ti.i32, v: ti.i32, z_end: ti.f64, seen: t
                 c[a] -= 1
         c = ti.min(ti.max(c, 0), n - 1)  # entry cell (rounding at the box faces)
         for _ in range(n[0] + n[1] + n[2] + 1):  # a segment crosses at most nx+ny+nz+1 cells
-            if ti.static(counting):
+            if ti.static(counting and tally):
+                found += ti.select(seen[c[0], c[1], c[2]] == 0, TALLY, 1)
+            elif ti.static(counting):
                 if seen[c[0], c[1], c[2]] == 0:
                     if stamp[c[0], c[1], c[2]] != call:
                         if ti.atomic_max(stamp[c[0], c[1], c[2]], call) < call:
@@ -104,7 +109,7 @@ def _mark_frame(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
         d = ti.cast(depth[v, u], ti.f64)
         z_end = ti.select(d > 0, d + trunc_m, miss_depth_m)
         if z_end > 0:
-            _walk_cells(prm, u, v, z_end, seen, seen, 0, False, False)
+            _walk_cells(prm, u, v, z_end, seen, seen, 0, False, False, False)
 
 
 @ti.kernel
@@ -124,9 +129,30 @@ def _count_view(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
         u, v = us * stride, vs * stride
         d = ti.cast(depth[v, u], ti.f64)
         found = _walk_cells(prm, u, v, ti.select(d > 0, d, max_depth_m), seen, stamp, call, True,
-                            first_only)
+                            first_only, False)
         if found > 0:
             ti.atomic_add(total[0], ti.cast(found, ti.i64))
+
+
+@ti.kernel
+def _tally_view(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                stride: ti.i32, max_depth_m: ti.f64,
+                seen: ti.types.ndarray(dtype=ti.u8, ndim=3),
+                total: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+    """``total[0] +=`` the unseen cells and ``total[1] +=`` the seen cells crossed by the rays
+    of the ``stride``-th pixels up to camera depth ``depth[v, u]`` (if > 0, else
+    ``max_depth_m``), every crossing counted. One thread per pixel; integer atomics only, so
+    deterministic."""
+    H, W = depth.shape[0], depth.shape[1]
+    for vs, us in ti.ndrange((H + stride - 1) // stride, (W + stride - 1) // stride):
+        u, v = us * stride, vs * stride
+        d = ti.cast(depth[v, u], ti.f64)
+        packed = _walk_cells(prm, u, v, ti.select(d > 0, d, max_depth_m), seen, seen, 0, True,
+                             False, True)
+        if packed > 0:
+            ti.atomic_add(total[0], ti.cast(packed // TALLY, ti.i64))
+            ti.atomic_add(total[1], ti.cast(packed % TALLY, ti.i64))
 
 
 class CoverageGrid:
@@ -212,6 +238,11 @@ class CoverageGrid:
         Each cell counts once per call however many rays cross it. One kernel launch; integer
         atomics only, deterministic. ``seen`` is not changed.
         """
+        return self._count(depth_pred, K, T_W_C, stride, max_depth_m, frontier, self.seen)
+
+    def _count(self, depth_pred, K, T_W_C, stride, max_depth_m, first_only: bool,
+               seen: np.ndarray) -> int:
+        """Distinct cells with ``seen == 0`` the view's rays cross (:func:`_count_view`)."""
         depth, prm, stride = self._view("depth_pred", depth_pred, K, T_W_C, stride)
         max_depth_m = float(max_depth_m)
         if not (max_depth_m > 0):  # inf allowed
@@ -221,9 +252,39 @@ class CoverageGrid:
             self._call = 0
         self._call += 1
         total = np.zeros(1, np.int64)
-        _count_view(prm, depth, stride, min(max_depth_m, NO_FACE), self.seen, self._stamp,
-                    self._call, total, bool(frontier))
+        _count_view(prm, depth, stride, min(max_depth_m, NO_FACE), seen, self._stamp,
+                    self._call, total, bool(first_only))
         return int(total[0])
+
+    def count_frontier(self, depth_pred: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
+                       stride: int = 1, max_depth_m: float = math.inf) -> int:
+        """Number of distinct *frontier* cells a candidate view's rays would cross: unseen cells
+        with at least one seen face neighbour (Yamauchi 1997: the boundary between known and
+        unknown space). Arguments as :meth:`count_unknown`. One kernel launch (after a numpy
+        pass over the grid for the frontier); integer atomics only, deterministic."""
+        seen = self.seen.astype(bool)
+        near = np.zeros_like(seen)
+        for axis in range(3):
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+            near[tuple(lo)] |= seen[tuple(hi)]
+            near[tuple(hi)] |= seen[tuple(lo)]
+        not_frontier = (seen | ~near).astype(np.uint8)  # the walk counts cells where this is 0
+        return self._count(depth_pred, K, T_W_C, stride, max_depth_m, False, not_frontier)
+
+    def tally(self, depth_pred: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, stride: int = 1,
+              max_depth_m: float = math.inf) -> tuple[int, int]:
+        """``(unseen, seen)``: how many unseen and seen cells a candidate view's rays would
+        cross, every crossing counted (a cell two rays cross counts twice). Arguments as
+        :meth:`count_unknown`. One kernel launch; integer atomics only, deterministic."""
+        depth, prm, stride = self._view("depth_pred", depth_pred, K, T_W_C, stride)
+        max_depth_m = float(max_depth_m)
+        if not (max_depth_m > 0):
+            raise ValueError(f"max_depth_m = {max_depth_m} must be > 0")
+        total = np.zeros(2, np.int64)
+        _tally_view(prm, depth, stride, min(max_depth_m, NO_FACE), self.seen, total)
+        return int(total[0]), int(total[1])
 
     def seen_count(self) -> int:
         """Number of seen cells."""

@@ -239,7 +239,8 @@ def test_scan_smoke_runs_every_policy(tmp_path, capsys):
                  "--set", "nbv.initial_seeds=2"]) == 0
     report = json.loads((out / "scan.json").read_text())
     assert (out / "scan.png").stat().st_size > 1000
-    assert set(report["policies"]) == {"bayes", "coverage", "farthest", "random"}
+    assert set(report["policies"]) == {"bayes", "coverage", "frontier", "entropy", "farthest",
+                                       "random"}
     draws = report["initial_draws"]
     assert len(draws) == 2 and draws[0] == report["initial_views"] and draws[0] != draws[1]
     for policy, res in report["policies"].items():

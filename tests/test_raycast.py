@@ -456,6 +456,35 @@ def test_exact_traversal_and_dedup_on_a_tiny_grid():
     assert grid.count_unknown(two, K2, T2, frontier=True) == 0
 
 
+def test_frontier_cells_and_the_tally_of_crossed_cells():
+    """count_frontier counts the unseen cells next to seen ones that the rays cross (each
+    once); tally counts every crossing of unseen and seen cells (the entropy baseline's sums),
+    so two identical rays count twice."""
+    grid = CoverageGrid((0.0, 0.0, 0.0), (0.6, 0.5, 0.4), 0.1)
+    K2 = np.array([[1e12, 0.0, 0.5], [0.0, 1e12, 0.0], [0.0, 0.0, 1.0]])
+    T2 = look_at((0.25, 0.25, -1.0), (0.25, 0.25, 0.0), up=(0.0, -1.0, 0.0))
+    two = np.zeros((1, 2), np.float32)  # two rays down column (2, 2), to the box exit
+    assert grid.count_frontier(two, K2, T2) == 0  # nothing seen: no frontier
+    assert grid.tally(two, K2, T2) == (8, 0)
+    grid.seen[2, 2, :2] = 1  # the column's first two cells
+    assert grid.count_frontier(two, K2, T2) == 1  # (2, 2, 2): unseen, next to (2, 2, 1)
+    assert grid.tally(two, K2, T2) == (4, 4)
+    grid.seen[3, 2, 3] = 1  # makes (2, 2, 3) a frontier cell too
+    assert grid.count_frontier(two, K2, T2) == 2
+    grid.seen[2, 2, :] = 1
+    assert grid.count_frontier(two, K2, T2) == 0 and grid.tally(two, K2, T2) == (0, 8)
+    # the planning wrapper's average entropy: all seen -> H(P_SEEN), all unseen -> ln 2
+    from bftaichi.planning.nbv import P_SEEN, CoverageGrid as PlanGrid
+
+    plan = PlanGrid((0.0, 0.0, 0.0), (0.6, 0.5, 0.4), 6, 0.1, 0.0)
+    assert plan.average_entropy(two, K2, T2, 1, 10.0) == pytest.approx(np.log(2.0))
+    plan.grid.seen[2, 2, :] = 1
+    h = -P_SEEN * np.log(P_SEEN) - (1 - P_SEEN) * np.log(1 - P_SEEN)
+    assert plan.average_entropy(two, K2, T2, 1, 10.0) == pytest.approx(h)
+    plan.grid.seen[2, 2, 2:] = 0
+    assert plan.average_entropy(two, K2, T2, 1, 10.0) == pytest.approx((np.log(2.0) + h) / 2)
+
+
 @pytest.mark.parametrize("dx, dy", [(0.31, 0.47), (-0.31, 0.47), (0.31, -0.47), (-0.31, -0.47)])
 def test_ray_starting_on_a_cell_corner(dx, dy):
     """The camera sits on a cell corner inside the grid: the ray starts in the cell it moves

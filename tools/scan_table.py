@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     ap.add_argument("scenes", nargs="*", default=[str(s) for s in SCENES])
     ap.add_argument("--steps", type=int, default=12)
     ap.add_argument("--candidates", type=int, default=48)
-    ap.add_argument("--policies", default="bayes,coverage,farthest,random")
+    ap.add_argument("--policies", default="bayes,coverage,frontier,entropy,farthest,random")
     ap.add_argument("--set", dest="sets", action="append", default=[], help="override (repeatable)")
     ap.add_argument("--out", default=str(ROOT / "out"), help="parent of the scan folders")
     ap.add_argument("--markdown", help="also write the table to this file")

@@ -183,6 +183,24 @@ class CoverageGrid:
         return int(self.grid.count_unknown(depth_pred, K, T_W_C, stride=stride,
                                            max_depth_m=max_depth_m, frontier=frontier))
 
+    def count_frontier(self, depth_pred, K, T_W_C, stride: int, max_depth_m: float) -> int:
+        """Distinct frontier cells (unseen, with a seen face neighbour) the view's rays cross
+        up to the predicted depth (or ``max_depth_m``)."""
+        return int(self.grid.count_frontier(depth_pred, K, T_W_C, stride=stride,
+                                            max_depth_m=max_depth_m))
+
+    def average_entropy(self, depth_pred, K, T_W_C, stride: int, max_depth_m: float) -> float:
+        """Isler et al. 2016's *average entropy* of the cells the view's rays cross up to the
+        predicted depth (or ``max_depth_m``), every crossing counted:
+        ``(n_u H(0.5) + n_s H(P_SEEN)) / (n_u + n_s)`` nats, ``H(p) = -p ln p - (1 - p)
+        ln(1 - p)``, ``n_u`` / ``n_s`` the unseen / seen cells crossed; a seen cell has the
+        occupancy probability of free space after one miss, clamped (``P_SEEN``), an unseen one
+        0.5. 0 for a view whose rays cross no cell of the grid."""
+        n_u, n_s = self.grid.tally(depth_pred, K, T_W_C, stride=stride, max_depth_m=max_depth_m)
+        if n_u + n_s == 0:
+            return 0.0
+        return (n_u * _entropy(0.5) + n_s * _entropy(P_SEEN)) / (n_u + n_s)
+
     def cells_of(self, points) -> np.ndarray:
         """(n,) int64 flat cell index of world points (n, 3), clipped to the grid."""
         shape = np.array(self.grid.shape)
@@ -192,6 +210,15 @@ class CoverageGrid:
 
     def seen_count(self) -> int:
         return int(self.grid.seen_count())
+
+
+#: Occupancy probability of a seen cell for the entropy baseline: OctoMap's lower clamping
+#: threshold (Hornung et al. 2013), what repeated misses leave of a free cell.
+P_SEEN = 0.12
+
+
+def _entropy(p: float) -> float:
+    return float(-p * np.log(p) - (1.0 - p) * np.log(1.0 - p))
 
 
 def coverage_grid(cfg: Config, lo, hi, voxel_size: float) -> CoverageGrid:

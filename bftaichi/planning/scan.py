@@ -20,8 +20,14 @@ unless ``nbv.target`` / ``nbv.radius_m`` say otherwise). After each view:
 
 Policies: ``bayes`` (:class:`bftaichi.planning.nbv.Planner` utility: expected variance reduction),
 ``coverage`` (the classic volumetric heuristic: the distinct unseen cells a view's rays cross
-before the predicted surface), ``farthest`` (the candidate farthest from every used view), and
-``random`` (seeded; the mean over ``nbv.random_seeds`` seeds). Only ``bayes`` needs the
+before the predicted surface), ``frontier`` (frontier-based exploration, Yamauchi 1997: the
+distinct frontier cells, unseen with a seen face neighbour, the rays cross before the predicted
+surface; :meth:`~bftaichi.planning.nbv.CoverageGrid.count_frontier`), ``entropy`` (Isler et
+al. 2016's *average entropy*: the mean occupancy entropy of every cell the rays cross before
+the predicted surface, unseen cells at p = 0.5, seen ones at p = 0.12;
+:meth:`~bftaichi.planning.nbv.CoverageGrid.average_entropy`), ``farthest`` (the candidate
+farthest from every used view), and ``random`` (seeded; the mean over ``nbv.random_seeds``
+seeds). Only ``bayes`` needs the
 variance, so only its runs solve the probes.
 """
 
@@ -38,7 +44,7 @@ from ..errors import ConfigError
 
 __all__ = ["POLICIES", "scan", "curve_summary", "runs_summary"]
 
-POLICIES = ("bayes", "coverage", "farthest", "random")
+POLICIES = ("bayes", "coverage", "frontier", "entropy", "farthest", "random")
 F_KEY = "fscore@10mm"
 R5, R2 = "recall@5mm", "recall@2mm"
 #: surface coverage, the usual measure of active reconstruction (Isler et al. 2016, Delmerico
@@ -146,10 +152,11 @@ def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress
             planner = Planner(post, cfg, scene.K, scene.size, coverage)
             if policy == "bayes":
                 scores = [planner.utility(scene.poses[c])["utility"] for c in free]
-            else:  # coverage
-                scores = [coverage.count_unknown(planner.predict_depth(scene.poses[c]), scene.K,
-                                                 scene.poses[c], planner.stride,
-                                                 planner.depth_range[1]) for c in free]
+            else:
+                score = {"coverage": coverage.count_unknown, "frontier": coverage.count_frontier,
+                         "entropy": coverage.average_entropy}[policy]
+                scores = [score(planner.predict_depth(scene.poses[c]), scene.K, scene.poses[c],
+                                planner.stride, planner.depth_range[1]) for c in free]
             choice = free[int(np.argmax(scores))]  # ties: the lowest candidate index
         record["seconds_choose"] = round(time.perf_counter() - t1, 3)
         steps.append(record)
