@@ -66,11 +66,24 @@ def test_box_face_depth_is_constant():
 
 def test_primitives_size_and_centre():
     for name, extents in [("sphere", (0.6, 0.6, 0.6)), ("box", (0.6, 0.6, 0.6)),
-                          ("cylinder", (0.6, 0.6, 0.6)), ("torus", (0.8, 0.8, 0.2))]:
+                          ("cylinder", (0.6, 0.6, 0.6)), ("torus", (0.8, 0.8, 0.2)),
+                          ("bowl", (0.6, 0.6, 0.18))]:
         mesh = make_mesh(SyntheticConfig(mesh=name, radius_m=0.3))
         np.testing.assert_allclose(mesh.extents, extents, atol=2e-3, err_msg=name)
         np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-3, err_msg=name)
-    assert set(PRIMITIVES) == {"sphere", "box", "cylinder", "torus", "tabletop"}
+    assert set(PRIMITIVES) == {"sphere", "box", "cylinder", "torus", "bowl", "tabletop"}
+
+
+def test_the_bowl_is_concave_and_closed():
+    """Looking straight down into the bowl, the rays meet its floor (not a lid); from the side
+    the outer wall hides the inside."""
+    bowl = make_mesh(SyntheticConfig(mesh="bowl", radius_m=0.3))
+    assert bowl.is_watertight and bowl.volume > 0
+    down = DepthRenderer(bowl).render(intrinsics(100.0, 100.0, 31.5, 31.5),
+                                      look_at((0.0, 0.0, 1.0), (0.0, 0.0, 0.0),
+                                              up=(0.0, 1.0, 0.0)), 64, 64)
+    # centre pixel: the floor, 0.08 R above the base at z = -0.09
+    assert down[32, 32] == pytest.approx(1.0 + 0.09 - 0.024, abs=1e-4)
 
 
 def test_tabletop_parts_separate_and_resting():

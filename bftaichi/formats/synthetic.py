@@ -17,6 +17,9 @@ Built-in meshes (:data:`PRIMITIVES`), all centred around the origin except the t
 - ``box``: a cube of half extent ``radius_m`` (edges along the world axes).
 - ``cylinder``: radius ``radius_m``, height ``2 * radius_m``, axis along z, 256 sections.
 - ``torus``: major radius ``radius_m``, minor radius ``radius_m / 3``, lying in the xy plane.
+- ``bowl``: a concave bowl, open at the top: rim radius ``radius_m``, height ``0.6 radius_m``,
+  a flat floor of radius ``radius_m / 2``, walls ``0.08 radius_m`` thick (a quarter-ellipse
+  profile revolved about z, watertight); its inside is seen only from above the rim.
 - ``tabletop``: fixed dimensions, independent of ``radius_m``. A table slab, box
   1.0 x 1.0 x 0.04 m with its top face at z = 0 (x, y in [-0.5, 0.5]), and resting on it (lowest
   point at z = 0 exactly), without touching each other. Faces that no camera above the table can
@@ -146,7 +149,23 @@ def _primitive(name: str, radius_m: float) -> trimesh.Trimesh:
         return _cylinder(radius_m, 2.0 * radius_m)
     if name == "torus":
         return _torus(radius_m, radius_m / 3.0)
+    if name == "bowl":
+        return _bowl(radius_m)
     return _tabletop()
+
+
+def _bowl(radius_m: float, sections: int = 128) -> trimesh.Trimesh:
+    """A bowl of rim radius R = ``radius_m`` (module docstring): the profile revolved about z,
+    closed (watertight), its bounding box centred at the origin."""
+    R, t, h = radius_m, 0.08 * radius_m, 0.6 * radius_m
+    a = np.linspace(0.0, 0.5 * np.pi, 33)
+    outer = np.stack([0.5 * R + 0.5 * R * np.sin(a), h * (1.0 - np.cos(a))], 1)  # base to rim
+    inner = np.stack([0.5 * R - t + 0.5 * R * np.sin(a), t + (h - t) * (1.0 - np.cos(a))],
+                     1)[::-1]  # rim to the floor
+    profile = np.concatenate([[[0.0, 0.0]], outer, inner, [[0.0, t]]])
+    mesh = trimesh.creation.revolve(profile, sections=sections)
+    mesh.apply_translation([0.0, 0.0, -0.5 * h])
+    return mesh
 
 
 def _load_mesh_file(path: Path) -> trimesh.Trimesh:
