@@ -116,7 +116,7 @@ class SceneConfig:
             parse_slice(self.frames, "scene.frames")
 
 
-PRIMITIVES = ("sphere", "box", "cylinder", "torus", "bowl", "tabletop")
+PRIMITIVES = ("sphere", "box", "cylinder", "torus", "bowl", "tabletop", "clutter")
 """The built-in meshes ``synthetic.mesh`` names (:mod:`bftaichi.formats.synthetic` builds them);
 any other value is a mesh file path."""
 

@@ -71,7 +71,25 @@ def test_primitives_size_and_centre():
         mesh = make_mesh(SyntheticConfig(mesh=name, radius_m=0.3))
         np.testing.assert_allclose(mesh.extents, extents, atol=2e-3, err_msg=name)
         np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-3, err_msg=name)
-    assert set(PRIMITIVES) == {"sphere", "box", "cylinder", "torus", "bowl", "tabletop"}
+    assert set(PRIMITIVES) == {"sphere", "box", "cylinder", "torus", "bowl", "tabletop",
+                               "clutter"}
+
+
+def test_clutter_objects_rest_on_the_table_apart():
+    """The cluttered table: a slab and six objects resting on it (lowest point at z = 0), at
+    least a centimetre apart, within the table."""
+    from scipy.spatial import cKDTree
+
+    mesh = make_mesh(SyntheticConfig(mesh="clutter", radius_m=5.0))  # radius_m must not matter
+    parts = mesh.split(only_watertight=False)
+    objects = [p for p in parts if p.bounds[0, 2] > -1e-9]
+    assert len(parts) == 7 and len(objects) == 6
+    for o in objects:
+        assert o.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)
+        assert np.all(np.abs(o.bounds[:, :2]) < 0.25)
+    for i, a in enumerate(objects):
+        for b in objects[i + 1:]:
+            assert cKDTree(a.vertices).query(b.vertices)[0].min() > 0.01
 
 
 def test_the_bowl_is_concave_and_closed():

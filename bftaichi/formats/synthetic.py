@@ -36,6 +36,14 @@ Built-in meshes (:data:`PRIMITIVES`), all centred around the origin except the t
   ======================  ==================================  ============================
 
 The default camera looks at the origin, the centre of the table top.
+
+- ``clutter``: fixed dimensions, independent of ``radius_m``: a table 0.5 x 0.5 x 0.03 m (top
+  at z = 0) with six objects packed on it so that they hide each other from most views (for
+  active scanning), without touching: a tall box 0.06 x 0.06 x 0.20 m at the centre, cylinders
+  (radius 0.04, height 0.14 at (0.09, 0.03); radius 0.025, height 0.10 at (0.11, -0.10)), a
+  sphere (radius 0.05 at (-0.08, 0.06)), a box 0.10 x 0.05 x 0.08 turned 20 deg at
+  (0.02, -0.10) and a torus lying flat (0.05 / 0.018 at (-0.11, -0.09)). As for the tabletop,
+  the faces resting on the table and its underside are left out.
 """
 
 from __future__ import annotations
@@ -140,6 +148,41 @@ def _tabletop() -> trimesh.Trimesh:
     return trimesh.util.concatenate([_drop_bottom(p) for p in parts])
 
 
+#: The cluttered table (module docstring): (kind, size, centre (x, y), yaw in degrees).
+_CLUTTER = (
+    ("box", (0.06, 0.06, 0.20), (0.00, 0.00), 0.0),
+    ("cylinder", (0.04, 0.14), (0.09, 0.03), 0.0),
+    ("sphere", (0.05,), (-0.08, 0.06), 0.0),
+    ("box", (0.10, 0.05, 0.08), (0.02, -0.10), 20.0),
+    ("torus", (0.05, 0.018), (-0.11, -0.09), 0.0),
+    ("cylinder", (0.025, 0.10), (0.11, -0.10), 0.0),
+)
+_CLUTTER_TABLE = (0.5, 0.5, 0.03)
+
+
+def _clutter() -> trimesh.Trimesh:
+    """The cluttered table of the module docstring: six objects packed on a small table so that
+    they hide each other, without touching; the faces resting on the table and the table's
+    underside are left out of the ground truth (:func:`_drop_bottom`)."""
+    slab = trimesh.creation.box(extents=_CLUTTER_TABLE)
+    slab.apply_translation([0.0, 0.0, -0.5 * _CLUTTER_TABLE[2]])
+    parts = [slab]
+    for kind, size, xy, yaw in _CLUTTER:
+        if kind == "box":
+            m = trimesh.creation.box(extents=size)
+        elif kind == "cylinder":
+            m = _cylinder(*size)
+        elif kind == "sphere":
+            m = _sphere(*size)
+        else:
+            m = _torus(*size)
+        if yaw:
+            m.apply_transform(trimesh.transformations.rotation_matrix(math.radians(yaw),
+                                                                      [0.0, 0.0, 1.0]))
+        parts.append(_rest_on_table(m, xy))
+    return trimesh.util.concatenate([_drop_bottom(p) for p in parts])
+
+
 def _primitive(name: str, radius_m: float) -> trimesh.Trimesh:
     if name == "sphere":
         return _sphere(radius_m)
@@ -151,6 +194,8 @@ def _primitive(name: str, radius_m: float) -> trimesh.Trimesh:
         return _torus(radius_m, radius_m / 3.0)
     if name == "bowl":
         return _bowl(radius_m)
+    if name == "clutter":
+        return _clutter()
     return _tabletop()
 
 
