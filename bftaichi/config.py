@@ -116,7 +116,7 @@ class SceneConfig:
             parse_slice(self.frames, "scene.frames")
 
 
-PRIMITIVES = ("sphere", "box", "cylinder", "torus", "bowl", "tabletop", "clutter")
+PRIMITIVES = ("sphere", "box", "cylinder", "torus", "bowl", "tabletop", "clutter", "shelf")
 """The built-in meshes ``synthetic.mesh`` names (:mod:`bftaichi.formats.synthetic` builds them);
 any other value is a mesh file path."""
 
@@ -286,8 +286,10 @@ class NBVConfig:
     candidates: str = "hemisphere"
     """``sphere`` / ``hemisphere`` (Fibonacci points between ``min_elevation_deg`` and
     ``max_elevation_deg``; ``hemisphere`` starts at 10 deg above the horizon unless
-    ``min_elevation_deg`` says otherwise), ``ring`` (a horizontal circle at ``height_m``) or
-    ``file`` (``poses_file``)."""
+    ``min_elevation_deg`` says otherwise), ``ring`` (a horizontal circle at ``height_m``),
+    ``rings`` (one circle per height of ``heights_m``, the candidates split evenly, alternate
+    rings turned by half a step: where a robot's camera can reach) or ``file``
+    (``poses_file``)."""
 
     n_candidates: int = 48
     """Number of generated candidate views."""
@@ -307,6 +309,9 @@ class NBVConfig:
 
     height_m: float = 0.0
     """Height of the ``ring`` above the target, metres."""
+
+    heights_m: list[float] = field(default_factory=list)
+    """Heights of the ``rings`` above the target, metres."""
 
     target: list[float] = field(default_factory=list)
     """World point the candidates look at; empty = the centre of the band's bounding box
@@ -352,7 +357,11 @@ class NBVConfig:
     (seeds ``run.seed`` + 0, 1, ...); summaries give the mean and std over them."""
 
     def check(self) -> None:
-        check_choice("nbv.candidates", self.candidates, ("sphere", "hemisphere", "ring", "file"))
+        check_choice("nbv.candidates", self.candidates,
+                     ("sphere", "hemisphere", "ring", "rings", "file"))
+        if self.candidates == "rings" and not 0 < len(self.heights_m) <= self.n_candidates:
+            raise ConfigError("nbv.candidates = 'rings' needs nbv.heights_m: 1 to "
+                              f"nbv.n_candidates heights, got {self.heights_m}")
         check_range("nbv.n_candidates", self.n_candidates, 1, 100_000)
         check_range("nbv.radius_m", self.radius_m, 0.0)
         check_range("nbv.radius_scale", self.radius_scale, 0.1, 1000.0)

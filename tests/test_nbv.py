@@ -14,7 +14,7 @@ from scipy.stats import spearmanr
 from bftaichi import nbv
 from bftaichi.cli import main
 from bftaichi.config import load_config
-from bftaichi.errors import BftaichiError
+from bftaichi.errors import BftaichiError, ConfigError
 from bftaichi.posterior import Posterior
 from bftaichi.stages.band import Band
 from conftest import TINY_SCENE_SETS, posterior_system, solved, to_csr
@@ -67,6 +67,26 @@ def test_candidates_look_at_the_target_from_the_radius():
     elevation = np.degrees(np.arcsin((sphere[:, 2, 3] - target[2]) / 0.7))
     assert elevation.min() >= -20.0 and elevation.max() <= 60.0
     assert elevation.min() < 0 < elevation.max()  # spread over the whole band
+
+
+def test_rings_of_candidates_at_two_heights():
+    """nbv.candidates = rings: the candidates split over the heights (7 = 4 + 3), each ring at
+    its height and the radius, looking at the target, alternate rings turned by half a step;
+    no heights is an error that names the key."""
+    target = np.array([0.1, -0.2, 0.3])
+    cfg = load_config(None, ["nbv.candidates=rings", "nbv.heights_m=[0.05, 0.35]",
+                             "nbv.n_candidates=7"])
+    poses = nbv.make_candidates(cfg, target, 0.8)
+    eyes = poses[:, :3, 3]
+    np.testing.assert_allclose(eyes[:, 2] - target[2], [0.05] * 4 + [0.35] * 3)
+    np.testing.assert_allclose(np.linalg.norm(eyes[:, :2] - target[:2], axis=1), 0.8)
+    to_target = (target - eyes) / np.linalg.norm(target - eyes, axis=1, keepdims=True)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", poses[:, :3, 2], to_target), 1.0,
+                               atol=1e-9)
+    azimuth = np.degrees(np.arctan2(eyes[:, 1] - target[1], eyes[:, 0] - target[0])) % 360
+    np.testing.assert_allclose(azimuth, [0, 90, 180, 270, 60, 180, 300], atol=1e-9)
+    with pytest.raises(ConfigError, match="heights_m"):
+        load_config(None, ["nbv.candidates=rings"])
 
 
 def test_poses_file_round_trip_and_errors(tmp_path):

@@ -72,7 +72,7 @@ def test_primitives_size_and_centre():
         np.testing.assert_allclose(mesh.extents, extents, atol=2e-3, err_msg=name)
         np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-3, err_msg=name)
     assert set(PRIMITIVES) == {"sphere", "box", "cylinder", "torus", "bowl", "tabletop",
-                               "clutter"}
+                               "clutter", "shelf"}
 
 
 def test_clutter_objects_rest_on_the_table_apart():
@@ -90,6 +90,21 @@ def test_clutter_objects_rest_on_the_table_apart():
     for i, a in enumerate(objects):
         for b in objects[i + 1:]:
             assert cKDTree(a.vertices).query(b.vertices)[0].min() > 0.01
+
+
+def test_the_shelf_stands_on_the_floor_without_hidden_faces():
+    """The shelf stands on z = 0 and its ground truth holds no face on the floor or where two
+    panels meet (no view could see them): no triangle centre lies inside another panel."""
+    from bftaichi.formats.synthetic import _SHELF_PANELS
+
+    shelf = make_mesh(SyntheticConfig(mesh="shelf", radius_m=5.0))
+    assert shelf.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)
+    c = shelf.triangles_center
+    assert np.all(c[:, 2] > 1e-6)
+    for extents, centre in _SHELF_PANELS:
+        lo, hi = np.asarray(centre) - 0.5 * np.asarray(extents), np.asarray(centre) + \
+            0.5 * np.asarray(extents)
+        assert not np.any(np.all((c > lo + 1e-6) & (c < hi - 1e-6), axis=1))
 
 
 def test_the_bowl_is_concave_and_closed():

@@ -44,6 +44,10 @@ The default camera looks at the origin, the centre of the table top.
   sphere (radius 0.05 at (-0.08, 0.06)), a box 0.10 x 0.05 x 0.08 turned 20 deg at
   (0.02, -0.10) and a torus lying flat (0.05 / 0.018 at (-0.11, -0.09)). As for the tabletop,
   the faces resting on the table and its underside are left out.
+- ``shelf``: fixed dimensions: an open bookshelf 0.53 m wide, 0.25 m deep and 0.515 m high
+  standing on the floor (z = 0) with a back panel on its +y side, three boards (z = 0, 0.25,
+  0.5) and five objects on the two lower ones (a box, a cylinder and a sphere below; a torus
+  and a box turned 30 deg on the middle board), seen from the front (-y) between the boards.
 """
 
 from __future__ import annotations
@@ -168,19 +172,62 @@ def _clutter() -> trimesh.Trimesh:
     slab.apply_translation([0.0, 0.0, -0.5 * _CLUTTER_TABLE[2]])
     parts = [slab]
     for kind, size, xy, yaw in _CLUTTER:
-        if kind == "box":
-            m = trimesh.creation.box(extents=size)
-        elif kind == "cylinder":
-            m = _cylinder(*size)
-        elif kind == "sphere":
-            m = _sphere(*size)
-        else:
-            m = _torus(*size)
-        if yaw:
-            m.apply_transform(trimesh.transformations.rotation_matrix(math.radians(yaw),
-                                                                      [0.0, 0.0, 1.0]))
-        parts.append(_rest_on_table(m, xy))
+        parts.append(_rest_on_table(_object(kind, size, yaw), xy))
     return trimesh.util.concatenate([_drop_bottom(p) for p in parts])
+
+
+#: The shelf (module docstring): panels as (extents, centre), objects as in _CLUTTER plus the
+#: height of the board they stand on.
+_SHELF_PANELS = (
+    ((0.50, 0.25, 0.015), (0.0, 0.0, 0.0075)),      # bottom board, on the floor
+    ((0.50, 0.25, 0.015), (0.0, 0.0, 0.2575)),      # middle board
+    ((0.50, 0.25, 0.015), (0.0, 0.0, 0.5075)),      # top
+    ((0.015, 0.25, 0.515), (-0.2575, 0.0, 0.2575)),  # sides
+    ((0.015, 0.25, 0.515), (0.2575, 0.0, 0.2575)),
+    ((0.53, 0.015, 0.515), (0.0, 0.1325, 0.2575)),  # back
+)
+_SHELF_OBJECTS = (
+    ("box", (0.08, 0.06, 0.12), (-0.12, -0.02), 0.0, 0.015),
+    ("cylinder", (0.035, 0.15), (0.04, 0.04), 0.0, 0.015),
+    ("sphere", (0.045,), (0.15, -0.06), 0.0, 0.015),
+    ("torus", (0.05, 0.018), (-0.11, 0.0), 0.0, 0.265),
+    ("box", (0.06, 0.10, 0.14), (0.10, 0.02), 30.0, 0.265),
+)
+
+
+def _object(kind: str, size, yaw: float) -> trimesh.Trimesh:
+    m = {"box": lambda: trimesh.creation.box(extents=size), "cylinder": lambda: _cylinder(*size),
+         "sphere": lambda: _sphere(*size), "torus": lambda: _torus(*size)}[kind]()
+    if yaw:
+        m.apply_transform(trimesh.transformations.rotation_matrix(math.radians(yaw),
+                                                                  [0.0, 0.0, 1.0]))
+    return m
+
+
+def _shelf() -> trimesh.Trimesh:
+    """The shelf of the module docstring: an open bookshelf with a back panel standing on the
+    floor at z = 0, and five objects on its two lower boards. The faces where panels meet,
+    those on the floor and those resting on a board are left out of the ground truth (no view
+    can see them)."""
+    parts = []
+    boxes = [(np.asarray(c) - 0.5 * np.asarray(e), np.asarray(c) + 0.5 * np.asarray(e))
+             for e, c in _SHELF_PANELS]
+    for k, (extents, centre) in enumerate(_SHELF_PANELS):
+        panel = trimesh.creation.box(extents=extents)
+        panel.apply_translation(centre)
+        panel = panel.subdivide_to_size(0.01)
+        # the faces where panels meet are hidden: drop triangles inside another panel's box
+        c = panel.triangles_center
+        hidden = c[:, 2] < 1e-9  # on the floor
+        for j, (lo, hi) in enumerate(boxes):
+            if j != k:
+                hidden |= np.all((c >= lo - 1e-9) & (c <= hi + 1e-9), axis=1)
+        parts.append(trimesh.Trimesh(panel.vertices, panel.faces[~hidden], process=False))
+    for kind, size, xy, yaw, base in _SHELF_OBJECTS:
+        m = _rest_on_table(_object(kind, size, yaw), xy)
+        m.apply_translation([0.0, 0.0, base])
+        parts.append(_drop_bottom(m))
+    return trimesh.util.concatenate(parts)
 
 
 def _primitive(name: str, radius_m: float) -> trimesh.Trimesh:
@@ -196,6 +243,8 @@ def _primitive(name: str, radius_m: float) -> trimesh.Trimesh:
         return _bowl(radius_m)
     if name == "clutter":
         return _clutter()
+    if name == "shelf":
+        return _shelf()
     return _tabletop()
 
 

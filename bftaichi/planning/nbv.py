@@ -131,6 +131,19 @@ def make_candidates(cfg: Config, target, radius_m: float) -> np.ndarray:
         return load_poses(c.poses_file)
     if c.candidates == "ring":
         return ring_candidates(target, radius_m, c.n_candidates, c.height_m)
+    if c.candidates == "rings":
+        k = len(c.heights_m)
+        rings = []
+        for r, h in enumerate(c.heights_m):
+            n = c.n_candidates // k + (r < c.n_candidates % k)
+            turn = np.array([[np.cos(np.pi / n), -np.sin(np.pi / n), 0.0, 0.0],
+                             [np.sin(np.pi / n), np.cos(np.pi / n), 0.0, 0.0],
+                             [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]) if r % 2 else np.eye(4)
+            T = ring_candidates(np.zeros(3), radius_m, n, float(h))
+            T = turn @ T  # about the target's vertical axis
+            T[:, :3, 3] += np.asarray(target, np.float64)
+            rings.append(T)
+        return np.concatenate(rings)
     lo = c.min_elevation_deg if c.candidates == "sphere" else max(c.min_elevation_deg, 10.0)
     return sphere_candidates(target, radius_m, c.n_candidates, lo, c.max_elevation_deg)
 
