@@ -256,12 +256,10 @@ class CoverageGrid:
                     self._call, total, bool(first_only))
         return int(total[0])
 
-    def count_frontier(self, depth_pred: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
-                       stride: int = 1, max_depth_m: float = math.inf) -> int:
-        """Number of distinct *frontier* cells a candidate view's rays would cross: unseen cells
-        with at least one seen face neighbour (Yamauchi 1997: the boundary between known and
-        unknown space). Arguments as :meth:`count_unknown`. One kernel launch (after a numpy
-        pass over the grid for the frontier); integer atomics only, deterministic."""
+    def not_frontier(self) -> np.ndarray:
+        """(nx, ny, nz) uint8, 0 on the *frontier* cells: unseen cells with at least one seen
+        face neighbour (Yamauchi 1997: the boundary between known and unknown space). A numpy
+        pass over the grid; valid until the next :meth:`mark`."""
         seen = self.seen.astype(bool)
         near = np.zeros_like(seen)
         for axis in range(3):
@@ -270,7 +268,17 @@ class CoverageGrid:
             lo[axis], hi[axis] = slice(0, -1), slice(1, None)
             near[tuple(lo)] |= seen[tuple(hi)]
             near[tuple(hi)] |= seen[tuple(lo)]
-        not_frontier = (seen | ~near).astype(np.uint8)  # the walk counts cells where this is 0
+        return (seen | ~near).astype(np.uint8)
+
+    def count_frontier(self, depth_pred: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
+                       stride: int = 1, max_depth_m: float = math.inf,
+                       not_frontier: np.ndarray | None = None) -> int:
+        """Number of distinct frontier cells (:meth:`not_frontier`) a candidate view's rays
+        would cross. Arguments as :meth:`count_unknown`; ``not_frontier``: that array, computed
+        once when many views of one grid are scored (default: computed here). One kernel
+        launch; integer atomics only, deterministic."""
+        if not_frontier is None:
+            not_frontier = self.not_frontier()
         return self._count(depth_pred, K, T_W_C, stride, max_depth_m, False, not_frontier)
 
     def tally(self, depth_pred: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, stride: int = 1,

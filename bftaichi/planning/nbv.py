@@ -77,11 +77,12 @@ def sphere_candidates(target, radius_m: float, n: int, min_elevation_deg: float 
     return np.stack([look_at(e, target) for e in eyes])
 
 
-def ring_candidates(target, radius_m: float, n: int, height_m: float = 0.0) -> np.ndarray:
+def ring_candidates(target, radius_m: float, n: int, height_m: float = 0.0,
+                    phase_rad: float = 0.0) -> np.ndarray:
     """``n`` poses evenly spaced on a horizontal circle of ``radius_m`` at ``height_m`` above
-    ``target`` (first on +x), looking at ``target``."""
+    ``target`` (the first at azimuth ``phase_rad`` from +x), looking at ``target``."""
     target = np.asarray(target, np.float64).reshape(3)
-    az = 2.0 * np.pi * np.arange(n) / n
+    az = phase_rad + 2.0 * np.pi * np.arange(n) / n
     eyes = target + np.stack([radius_m * np.cos(az), radius_m * np.sin(az),
                               np.full(n, float(height_m))], 1)
     return np.stack([look_at(e, target) for e in eyes])
@@ -133,17 +134,10 @@ def make_candidates(cfg: Config, target, radius_m: float) -> np.ndarray:
         return ring_candidates(target, radius_m, c.n_candidates, c.height_m)
     if c.candidates == "rings":
         k = len(c.heights_m)
-        rings = []
-        for r, h in enumerate(c.heights_m):
-            n = c.n_candidates // k + (r < c.n_candidates % k)
-            turn = np.array([[np.cos(np.pi / n), -np.sin(np.pi / n), 0.0, 0.0],
-                             [np.sin(np.pi / n), np.cos(np.pi / n), 0.0, 0.0],
-                             [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]) if r % 2 else np.eye(4)
-            T = ring_candidates(np.zeros(3), radius_m, n, float(h))
-            T = turn @ T  # about the target's vertical axis
-            T[:, :3, 3] += np.asarray(target, np.float64)
-            rings.append(T)
-        return np.concatenate(rings)
+        sizes = [c.n_candidates // k + (r < c.n_candidates % k) for r in range(k)]
+        return np.concatenate([ring_candidates(target, radius_m, n, float(h),
+                                               phase_rad=np.pi / n if r % 2 else 0.0)
+                               for r, (n, h) in enumerate(zip(sizes, c.heights_m))])
     lo = c.min_elevation_deg if c.candidates == "sphere" else max(c.min_elevation_deg, 10.0)
     return sphere_candidates(target, radius_m, c.n_candidates, lo, c.max_elevation_deg)
 
@@ -196,11 +190,15 @@ class CoverageGrid:
         return int(self.grid.count_unknown(depth_pred, K, T_W_C, stride=stride,
                                            max_depth_m=max_depth_m, frontier=frontier))
 
-    def count_frontier(self, depth_pred, K, T_W_C, stride: int, max_depth_m: float) -> int:
+    def count_frontier(self, depth_pred, K, T_W_C, stride: int, max_depth_m: float,
+                       not_frontier=None) -> int:
         """Distinct frontier cells (unseen, with a seen face neighbour) the view's rays cross
-        up to the predicted depth (or ``max_depth_m``)."""
+        up to the predicted depth (or ``max_depth_m``); ``not_frontier``: the grid's
+        :meth:`kernels.coverage.CoverageGrid.not_frontier`, when scoring many views of one
+        grid."""
         return int(self.grid.count_frontier(depth_pred, K, T_W_C, stride=stride,
-                                            max_depth_m=max_depth_m))
+                                            max_depth_m=max_depth_m,
+                                            not_frontier=not_frontier))
 
     def average_entropy(self, depth_pred, K, T_W_C, stride: int, max_depth_m: float) -> float:
         """Isler et al. 2016's *average entropy* of the cells the view's rays cross up to the

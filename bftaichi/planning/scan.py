@@ -33,6 +33,7 @@ variance, so only its runs solve the probes.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from pathlib import Path
@@ -153,8 +154,11 @@ def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress
             if policy == "bayes":
                 scores = [planner.utility(scene.poses[c])["utility"] for c in free]
             else:
-                score = {"coverage": coverage.count_unknown, "frontier": coverage.count_frontier,
-                         "entropy": coverage.average_entropy}[policy]
+                score = {"coverage": coverage.count_unknown,
+                         "entropy": coverage.average_entropy}.get(policy)
+                if policy == "frontier":  # the frontier once per step, not per candidate
+                    score = functools.partial(coverage.count_frontier,
+                                              not_frontier=coverage.grid.not_frontier())
                 scores = [score(planner.predict_depth(scene.poses[c]), scene.K, scene.poses[c],
                                 planner.stride, planner.depth_range[1]) for c in free]
             choice = free[int(np.argmax(scores))]  # ties: the lowest candidate index

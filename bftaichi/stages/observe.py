@@ -333,6 +333,8 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
         if not len(v):
             continue
         dep = D_i[v, u]
+        sd_i = obs.axial_sigma_m(dep)
+        tol = np.maximum(2.0 * voxel_size_m, 3.0 * sd_i)  # the same point: depth within this
         p_w = np.stack([(u * st_i - K_i[0, 2]) / K_i[0, 0] * dep,
                         (v * st_i - K_i[1, 2]) / K_i[1, 1] * dep, dep], 1) @ T_i[:3, :3].T \
             + T_i[:3, 3]
@@ -347,13 +349,12 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             inside = front & (cu >= 0) & (cv >= 0) & (cu < m_j.shape[1]) & (cv < m_j.shape[0])
             ok = np.zeros(len(p), bool)
             ok[inside] = m_j[cv[inside], cu[inside]]
-            sd_i = obs.axial_sigma_m(dep)
-            tol = np.maximum(2.0 * voxel_size_m, 3.0 * sd_i)
             ok[ok] &= np.abs(D_j[cv[ok], cu[ok]] - zj[ok]) < tol[ok]
             if not ok.any():
                 continue
             d = g_i[v[ok], u[ok]] - g_j[cv[ok], cu[ok]]
             d_all.append(d)
+            # the pair's sensor noise, both frames'; e enters the pair as 2 e^2 (stat below)
             s_all.append(np.hypot(sd_i[ok], obs.axial_sigma_m(D_j[cv[ok], cu[ok]])))
             # neighbouring cast pixels of frame i paired with frame j: the product of their
             # d keeps what the pixels of a frame share (2 e_corr^2), not independent noise
@@ -365,10 +366,8 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
                 pair = ma & mb
                 lag_sum += 0.5 * float(np.sum(a[pair] * b[pair]))
                 lag_n += int(pair.sum())
-    r_all = np.abs(np.concatenate(d_all)) if d_all else np.zeros(0)
-    # the pair's model sigma holds both frames' sensor noise; e enters it as 2 e^2
-    s_all = np.concatenate(s_all) if s_all else np.zeros(0)
-    r, s = r_all, s_all
+    r = np.abs(np.concatenate(d_all)) if d_all else np.zeros(0)
+    s = np.concatenate(s_all) if s_all else np.zeros(0)
     target = 0.6744897501960817  # median of |N(0, 1)|
     if len(r) < 100:
         return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0, "pixels": int(len(r)),
