@@ -155,6 +155,56 @@ def fixed_point(x: ti.f64) -> ti.i64:
 _NDA = ti.types.ndarray
 
 
+SAMPLE_DROPPED, SAMPLE_ACCEPTED, SAMPLE_GATED = 0, 1, 2  # what look_up_sample finds
+
+
+@ti.func
+def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot_ray: ti.f64,
+                   spacing: ti.f64, gate: ti.f64, block_keys: ti.template(),
+                   block_table: ti.template(), ref: ti.template(), scratch: ti.template(),
+                   blocks: ti.template()) -> ti.i32:
+    """Sample j (camera depth ``z`` > 0) of pixel row ``vs``: the band indices of its cell's
+    corners into ``scratch[vs, j + mf]`` (corner 7 set to -1 where a corner is outside the
+    band, -2 where the side gate drops the sample: steps 3 and 3b of the kernels.observe
+    docstring), through the row's block cache ``blocks[vs, j + mf]``. Returns SAMPLE_ACCEPTED,
+    SAMPLE_DROPPED or SAMPLE_GATED."""
+    c0 = floor_i32(o + z * m_ray)
+    b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
+    # block cache per sample index j: sample j of the next pixels in the row is mostly in
+    # the same block (8 voxels = many pixels)
+    cached = ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])
+    if (b != cached).any():
+        rows = block_rows(block_keys, b)
+        for t in ti.static(range(3)):
+            blocks[vs, j + mf, t] = b[t]
+        for t in ti.static(range(8)):
+            blocks[vs, j + mf, 3 + t] = rows[t]
+    idx = cell_corners(block_table, c0, b, ti.Vector(
+        [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
+    gated = 0
+    if idx[7] >= 0 and gate > 0:
+        # step 3b: the reference SDF interpolated at the sample must not put it on the other
+        # side of the surface by more than the gate
+        g = o + z * m_ray
+        a = trilinear(g - ti.cast(c0, ti.f64))
+        t_ref = ti.f64(0.0)
+        for c in ti.static(range(8)):
+            t_ref += a[c] * ti.cast(ref[idx[c]], ti.f64)
+        y = ti.cast(j, ti.f64) * spacing * n_dot_ray
+        # NaN (a corner without reference) fails both tests: kept
+        if (y < 0 and t_ref > gate) or (y > 0 and t_ref < -gate):
+            gated = 1
+    for c in ti.static(range(8)):
+        scratch[vs, j + mf, c] = idx[c]
+    status = SAMPLE_DROPPED
+    if gated:
+        scratch[vs, j + mf, 7] = -2
+        status = SAMPLE_GATED
+    elif idx[7] >= 0:
+        status = SAMPLE_ACCEPTED
+    return status
+
+
 @ti.func
 def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.template(),
                  block_keys: ti.template(),
@@ -212,44 +262,31 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
             # corner indices wait in this row's scratch); pass 1 adds the accepted samples
             # (or writes rows) with w = 1 / (n_acc sigma^2).
             n_acc = 0
-            for j in range(-mf, m + 1):
-                z = D + ti.cast(j, ti.f64) * spacing
-                if z > 0:
-                    c0 = floor_i32(o + z * m_ray)
-                    b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
-                    # block cache per sample index j: sample j of the next pixels in the
-                    # row is mostly in the same block (8 voxels = many pixels)
-                    cached = ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])
-                    if (b != cached).any():
-                        rows = block_rows(block_keys, b)
-                        for t in ti.static(range(3)):
-                            blocks[vs, j + mf, t] = b[t]
-                        for t in ti.static(range(8)):
-                            blocks[vs, j + mf, 3 + t] = rows[t]
-                    idx = cell_corners(block_table, c0, b, ti.Vector(
-                        [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
-                    gated = 0
-                    if idx[7] >= 0 and gate > 0:
-                        # step 3b: the reference SDF interpolated at the sample must not
-                        # put it on the other side of the surface by more than the gate
-                        g = o + z * m_ray
-                        a = trilinear(g - ti.cast(c0, ti.f64))
-                        t_ref = ti.f64(0.0)
-                        for c in ti.static(range(8)):
-                            t_ref += a[c] * ti.cast(ref[idx[c]], ti.f64)
-                        y = ti.cast(j, ti.f64) * spacing * n_dot_ray
-                        # NaN (a corner without reference) fails both tests: kept
-                        if (y < 0 and t_ref > gate) or (y > 0 and t_ref < -gate):
-                            gated = 1
-                    for c in ti.static(range(8)):
-                        scratch[vs, j + mf, c] = idx[c]
-                    if gated:
-                        scratch[vs, j + mf, 7] = -2
-                        n_gate += 1
-                    elif idx[7] >= 0:
-                        n_acc += 1
-                    else:
-                        n_drop += 1
+            # the misfit adds only the samples near the surface (MISFIT_NEAR); of the others it
+            # needs only whether min(n_acc, share) is reached, so they are looked up after the
+            # near ones and only while it is not (the same n_acc share, fewer lookups)
+            for sweep in ti.static(range(2 if mode == MODE_MISFIT else 1)):
+                for j in range(-mf, m + 1):
+                    z = D + ti.cast(j, ti.f64) * spacing
+                    look = 0
+                    if z > 0:
+                        look = 1
+                        if ti.static(mode == MODE_MISFIT):
+                            near = ti.abs(ti.cast(j, ti.f64) * spacing * n_dot_ray) \
+                                * prm[P_INV_VOXEL] < MISFIT_NEAR
+                            if ti.static(sweep == 0):
+                                look = ti.cast(near, ti.i32)
+                            elif near or ti.cast(n_acc, ti.f64) >= prm[P_SHARE]:
+                                look = 0
+                    if look:
+                        status = look_up_sample(vs, j, mf, z, o, m_ray, n_dot_ray, spacing, gate,
+                                                block_keys, block_table, ref, scratch, blocks)
+                        if status == SAMPLE_GATED:
+                            n_gate += 1
+                        elif status == SAMPLE_ACCEPTED:
+                            n_acc += 1
+                        else:
+                            n_drop += 1
             todo = n_acc
             if ti.static(mode == MODE_ROWS):
                 todo = 1  # every sample gets a row, accepted or not
@@ -263,6 +300,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                     z = D + delta
                     if z <= 0:
                         continue
+                    if ti.static(mode == MODE_MISFIT):  # only the near samples count there
+                        if ti.abs(delta * n_dot_ray) * prm[P_INV_VOXEL] >= MISFIT_NEAR:
+                            continue
                     g = o + z * m_ray
                     c0 = floor_i32(g)
                     a = trilinear(g - ti.cast(c0, ti.f64))
