@@ -148,6 +148,7 @@ class Reconstructor:
                                  noise["sigma_corr_m"])
         S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
                                     else frames, o.stride)
+        observer.release()  # the misfit pass below needs only its lookups
         lap("observe")
         system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
         lap("prior")

@@ -98,6 +98,7 @@ previous cell before the atomics (-10 % at stride 1, slower at stride 2, 3x the 
 an unrolled corner loop (no gain).
 """
 
+import gc
 import math
 import os
 
@@ -177,7 +178,8 @@ class Observer:
     Raises ValueError for inconsistent inputs (the weight needs a floor: one of ``depth_a_m``,
     ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 120
     bytes per band voxel per CPU thread (int64 accumulators, one copy per thread, at most
-    MAX_PARTS) plus 16 (ijk, the gate's float32 reference).
+    MAX_PARTS; :meth:`release` drops them) plus 16 (ijk, the gate's float32 reference); the
+    misfit pass adds 24 per voxel per thread.
     """
 
     def __init__(self, block_keys: np.ndarray, block_table: np.ndarray, n_voxels: int,
@@ -264,8 +266,9 @@ class Observer:
         n = max(self.n_voxels, 1)
         # one copy of the accumulators per thread (the kernels add without atomics)
         self.parts = accumulator_parts()
-        self.S_acc = ti.ndarray(ti.i64, shape=(self.parts, n, N_HALF))
-        self.h_acc = ti.ndarray(ti.i64, shape=(self.parts, n))
+        # numpy, not ti.ndarray: what release() drops goes back to the system
+        self.S_acc = np.zeros((self.parts, n, N_HALF), np.int64)
+        self.h_acc = np.zeros((self.parts, n), np.int64)
         self._params = np.zeros(N_PARAMS, np.float64)
         self._scratch_buf = None
         self._R_acc = None  # misfit sums (N, 3), allocated by the first misfit()
@@ -273,12 +276,31 @@ class Observer:
 
     def reset(self) -> None:
         """Forget all frames (zero the accumulators, the misfit sums and the counters)."""
-        self.S_acc.fill(0)
-        self.h_acc.fill(0)
+        if self.S_acc is None:  # after release()
+            n = max(self.n_voxels, 1)
+            self.S_acc = np.zeros((self.parts, n, N_HALF), np.int64)
+            self.h_acc = np.zeros((self.parts, n), np.int64)
+        self.S_acc[...] = 0
+        self.h_acc[...] = 0
         self.counts = np.zeros(N_COUNTS, np.int64)
         self.frames = 0
         if self._R_acc is not None:
-            self._R_acc.fill(0)
+            self._R_acc[...] = 0
+
+    def release(self) -> None:
+        """Drop the data term's accumulators (120 bytes per voxel per thread) once
+        :meth:`finalize` has given what they hold: :meth:`misfit` and :meth:`frame_rows` do not
+        need them. :meth:`integrate`, :meth:`diagonal` and :meth:`finalize` then raise until
+        :meth:`reset`."""
+        self.S_acc = self.h_acc = None
+        # Taichi leaves the arguments of a kernel's compiling call in a reference cycle: without
+        # a collection the accumulators stay resident until the next one, well into the solve
+        gc.collect()
+
+    def _data_term(self) -> tuple:
+        if self.S_acc is None:
+            raise RuntimeError("Observer.release() dropped the data term; reset() first")
+        return self.S_acc, self.h_acc
 
     # -- per frame ---------------------------------------------------------------------------
     def _frame_params(self, depth_m, K, T_W_C, sigma_pose_m):
@@ -388,6 +410,7 @@ class Observer:
         One kernel launch. Deterministic (integer atomics).
         """
         stride = self._check_stride(stride)
+        S_acc, h_acc = self._data_term()
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         frame = np.zeros(N_COUNTS, np.int64)
         for image, mask, prm_l, _ in self._levels(depth, prm, stride):
@@ -395,7 +418,7 @@ class Observer:
             counts = np.zeros((n_vs, N_COUNTS), np.int64)
             if self.n_voxels:
                 observe_frame(image, mask, prm_l, self.block_keys, self.block_table,
-                              self.reference, stride, self.m, self.mf, self.S_acc, self.h_acc,
+                              self.reference, stride, self.m, self.mf, S_acc, h_acc,
                               counts, *self._scratch(n_vs))
             frame += counts.sum(axis=0)
         self.counts += frame
@@ -466,8 +489,7 @@ class Observer:
             raise ValueError(f"mu {mu.shape} and var {var.shape} must have shape "
                              f"({self.n_voxels},)")
         if self._R_acc is None:
-            self._R_acc = ti.ndarray(ti.i64, shape=(self.parts, max(self.n_voxels, 1), 3))
-            self._R_acc.fill(0)
+            self._R_acc = np.zeros((self.parts, max(self.n_voxels, 1), 3), np.int64)
         if not self.n_voxels:
             return
         for image, mask, prm_l, _ in self._levels(depth, prm, stride):
@@ -487,7 +509,7 @@ class Observer:
         expects of it."""
         if self._R_acc is None or not self.n_voxels:
             return np.zeros((self.n_voxels, 3))
-        R = self._R_acc.to_numpy().sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
+        R = self._R_acc.sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
         R[:, :2] *= self.voxel_size ** 2
         return R
 
@@ -510,7 +532,7 @@ class Observer:
         stencil (:meth:`finalize`). Exact (from the fixed-point sums)."""
         if not self.n_voxels:
             return np.zeros(0)
-        return self.S_acc.to_numpy()[:, :, 0].sum(axis=0) / self.fixed_scale
+        return self._data_term()[0][:, :, 0].sum(axis=0) / self.fixed_scale
 
     def finalize(self) -> tuple[np.ndarray, np.ndarray, dict]:
         """The data term so far: ``S_data`` (N, 27) float32 (stencil of A^T W A, symmetric:
@@ -523,7 +545,7 @@ class Observer:
         S = np.zeros((N, 27), np.float32)
         h = np.zeros(N, np.float32)
         if N:
-            finalize_stencil(self.block_keys, self.block_table, self.ijk, self.S_acc, self.h_acc,
+            finalize_stencil(self.block_keys, self.block_table, self.ijk, *self._data_term(),
                       1.0 / self.fixed_scale, S, h)
         stats = {"frames": self.frames, **dict(zip(COUNT_NAMES, self.counts.tolist())),
                  "fixed_scale": self.fixed_scale}

@@ -29,8 +29,8 @@ nbr = -1; those coefficients multiply zero). Measured 1.35x faster than testing 
   block as N+1 vectors of K lanes (``ti.types.vector(K)``), and LLVM turns each neighbour's K
   lanes into SIMD loads and multiply-adds, so a block of K vectors costs little more than
   one vector: S and nbr (216 bytes per voxel, the dominant memory traffic) are read once for
-  all K. Blocks wider than :data:`MAX_LANES` run as several blocks (K = 64 compiles in ~10 s
-  and runs slower per vector than 16).
+  all K. Blocks wider than :data:`MAX_LANES` run as several blocks, one after the other (K =
+  64 compiles in ~10 s and runs slower per vector than 16).
 * Row sums accumulate in the vectors' dtype: float64 for the MAP solve; float32 for the
   probes (27 terms round to ~1e-6 relative, far below the probe tolerance; a float64
   accumulator halves the SIMD width and ran 2-2.5x slower at K = 16).
@@ -49,7 +49,12 @@ import taichi as ti
 from .layout import CENTRE, FAR, STENCIL
 
 CHUNK = 1024  # rows per reduction chunk (fixed: results do not depend on the thread count)
-MAX_LANES = 16  # widest compiled vector block (K = 16 probes are one block)
+#: Widest compiled vector block: K = 16 probes are two blocks of 8, solved one after the
+#: other. A solve holds five padded (N+1, K) blocks (B, X, R, P, AP), which were the peak
+#: memory of a whole run; two blocks of 8 halve that (70 MB less at 2 cm on 500 redkitchen
+#: frames, 280 MB at 1 cm) for ~5 % more probe time, and give the same bits: every column
+#: has its own CG, and a lane's sums do not depend on the block width.
+MAX_LANES = 8
 #: Taichi's CPU backend gives each thread one contiguous share of at least this many
 #: iterations of a kernel's outer loop (its MakeCPUMultithreadedRangeFor pass), so a loop
 #: over the ~500 chunks of a 500k-voxel band ran on one thread. Every parallel loop here

@@ -430,3 +430,72 @@ def test_superpixels_keep_every_pixel_and_the_geometry():
     assert abs(on["total"] / off["total"] - 1) < 0.01  # sum of S = sum of the weights
     assert np.median(on["res"]) < 0.005 and np.percentile(on["res"], 95) < 0.02
     assert np.percentile(off["res"], 95) < 1e-4  # the reference: exact rows
+
+
+@pytest.mark.parametrize("count_once", ["pixel", "voxel"])
+def test_misfit_sums_match_a_reference_built_from_the_rows(sphere, count_once):
+    """The misfit pass (which looks up only the samples near the surface, and the others only
+    until a pixel's share is settled) sums exactly what the rows of the data term give: per
+    corner, a_c s min(r^2, 100 sigma^2), a_c s max(sigma^2 - p, 0.1 sigma^2) and a_c s over the
+    accepted samples with |y| < one voxel; r = y - a . mu, p = sum a_c^2 var_c, sigma^2 the
+    sample's pixel noise, s its share of the pixel."""
+    band, frames = sphere
+    rng = np.random.default_rng(3)
+    centres = (band.ijk + 0.5) * VOXEL
+    mu = (sphere_sdf(centres) + rng.normal(0, 0.004, len(centres))).astype(np.float32)
+    var = np.full(len(centres), 1e-6, np.float32)
+    ref = sphere_sdf(centres).astype(np.float32)
+    obs = band.observer(count_once=count_once, front_m=2 * TRUNC, gate_m=0.5 * TRUNC,
+                        reference=ref)
+    expected = np.zeros((len(centres), 3))
+    for f in frames:
+        obs.misfit(f.depth_m, f.K, f.T_W_C, mu, var)
+        rows = obs.frame_rows(f.depth_m, f.K, f.T_W_C)
+        _, first, n_acc = np.unique(rows["pixel"], return_inverse=True, return_counts=True)
+        n_share = n_acc[first].astype(np.float64)
+        if count_once == "voxel":
+            n_share = np.minimum(n_share, obs.share)
+        sigma2 = 1.0 / (rows["w"] * n_share)
+        s = 1.0 / n_share
+        near = np.abs(rows["y"]) < VOXEL
+        a, idx = rows["a"][near], rows["idx"][near]
+        r = rows["y"][near] - (a * mu[idx]).sum(axis=1)
+        p = (a ** 2 * var[idx]).sum(axis=1)
+        terms = (np.minimum(r ** 2, 100 * sigma2[near]),
+                 np.maximum(sigma2[near] - p, 0.1 * sigma2[near]), np.ones(near.sum()))
+        for col, t in enumerate(terms):
+            np.add.at(expected[:, col], idx.ravel(), (a * (s[near] * t)[:, None]).ravel())
+    assert expected[:, 2].sum() > 10  # many near samples were summed
+    # each add is rounded to 2^-24 (voxel^2 for the first two columns): a few units per sum
+    unit = np.array([VOXEL ** 2, VOXEL ** 2, 1.0]) * 2.0 ** -24
+    np.testing.assert_allclose(obs.misfit_sums(), expected, rtol=1e-6, atol=32 * unit.max())
+    assert np.all(np.abs(obs.misfit_sums() - expected) <= 1e-6 * np.abs(expected) + 32 * unit)
+
+
+def test_release_drops_the_data_term_only(sphere):
+    """After release() the misfit pass still runs (and sums the same); integrate and finalize
+    refuse until reset(), which starts a data term from zero."""
+    band, frames = sphere
+    mu = sphere_sdf((band.ijk + 0.5) * VOXEL).astype(np.float32)
+    var = np.full(len(mu), 1e-6, np.float32)
+    kept, released = band.observer(), band.observer()
+    for obs in (kept, released):
+        for f in frames:
+            obs.integrate(f.depth_m, f.K, f.T_W_C)
+    S, h, _ = released.finalize()
+    released.release()
+    for obs in (kept, released):
+        for f in frames:
+            obs.misfit(f.depth_m, f.K, f.T_W_C, mu, var)
+    np.testing.assert_array_equal(released.misfit_sums(), kept.misfit_sums())
+    f = frames[0]
+    with pytest.raises(RuntimeError, match="release"):
+        released.integrate(f.depth_m, f.K, f.T_W_C)
+    with pytest.raises(RuntimeError, match="release"):
+        released.finalize()
+    released.reset()
+    for f in frames:
+        released.integrate(f.depth_m, f.K, f.T_W_C)
+    S2, h2, _ = released.finalize()
+    np.testing.assert_array_equal(S2, S)
+    np.testing.assert_array_equal(h2, h)

@@ -303,7 +303,8 @@ def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: flo
     # and h (112 B) plus its scratch
     obs = 120 * accumulator_parts() + 16
     out["observe"] = persist + band + obs * N + 112 * N
-    post = band + obs * N + 112 * N + 24 * N  # + prior's b0, h, the MAP mean
+    # the Observer drops its accumulators after observing (Observer.release)
+    post = band + 16 * N + 112 * N + 24 * N  # + prior's b0, h, the MAP mean
     # MAP: the compact layout (64 B) and its build temporaries (~250 B), five float64 vectors
     out["map"] = persist + post + 370 * N
     # variance: K = 16 float32 probes: Z, U, and the padded B, X, R, P, AP blocks (64 B each)
