@@ -265,7 +265,8 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
             # the misfit adds only the samples near the surface (MISFIT_NEAR); of the others it
             # needs only whether min(n_acc, share) is reached, so they are looked up after the
             # near ones and only while it is not (the same n_acc share, fewer lookups)
-            for sweep in ti.static(range(2 if mode == MODE_MISFIT else 1)):
+            # (a run-time loop: the lookup below is compiled once)
+            for sweep in range(ti.static(2 if mode == MODE_MISFIT else 1)):
                 for j in range(-mf, m + 1):
                     z = D + ti.cast(j, ti.f64) * spacing
                     look = 0
@@ -274,7 +275,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                         if ti.static(mode == MODE_MISFIT):
                             near = ti.abs(ti.cast(j, ti.f64) * spacing * n_dot_ray) \
                                 * prm[P_INV_VOXEL] < MISFIT_NEAR
-                            if ti.static(sweep == 0):
+                            if sweep == 0:
                                 look = ti.cast(near, ti.i32)
                             elif near or ti.cast(n_acc, ti.f64) >= prm[P_SHARE]:
                                 look = 0
