@@ -32,6 +32,63 @@ _INDEX_MASK = 0x3FFFFFFF  # see _CompactKernels: makes i + r provably non-wrappi
 _STRIDE_MOD, _STRIDE_REM = 1024, 400  # slot stride = 400 mod 1024 floats (1600 B mod 4 KiB)
 
 
+
+_NDA = ti.types.ndarray
+_BIG = np.iinfo(np.int32).max
+_N_NEAR = len(_COLUMNS)
+
+
+@ti.kernel
+def _row_columns(nbr: _NDA(dtype=ti.i32, ndim=2), nbr2: _NDA(dtype=ti.i32, ndim=2),
+                 has_far: ti.i32, bits: _NDA(dtype=ti.u32, ndim=1),
+                 value: _NDA(dtype=ti.i32, ndim=2), defined: _NDA(dtype=ti.i8, ndim=2),
+                 gap: _NDA(dtype=ti.i8, ndim=1)):
+    """Per row i (one thread each): the presence bits; per near column c the offset
+    ``j - i - dk`` of its present neighbours j (the smallest; ``gap`` where they differ) and
+    whether it has one; per far offset a (``has_far``) its ``j - i``. See _compact_layout."""
+    for i in range(nbr.shape[0]):
+        b = ti.u32(0)
+        for o in ti.static(range(STENCIL)):
+            if ti.static(o != CENTRE):
+                b |= ti.cast(nbr[i, o] >= 0, ti.u32) << ti.static(_BIT[o])
+        g = 0
+        for c in ti.static(range(_N_NEAR)):
+            low, high, any_ = _BIG, -_BIG, 0
+            for t in ti.static(range(3)):
+                j = nbr[i, ti.static(_COLUMN_OFFSETS[c][t])]
+                if j >= 0:
+                    cand = j - i - ti.static(t - 1)
+                    low, high, any_ = ti.min(low, cand), ti.max(high, cand), 1
+            defined[c, i] = ti.cast(any_, ti.i8)
+            value[c, i] = low if any_ else 0
+            if any_ and low != high:
+                g = 1
+        if has_far:
+            for a in ti.static(range(FAR)):
+                j = nbr2[i, a]
+                b |= ti.cast(j >= 0, ti.u32) << ti.static(_FAR_BIT + a)
+                defined[_N_NEAR + a, i] = ti.cast(j >= 0, ti.i8)
+                value[_N_NEAR + a, i] = j - i if j >= 0 else 0
+        bits[i] = b
+        gap[i] = ti.cast(g, ti.i8)
+
+
+@ti.kernel
+def _fill_slots(S: _NDA(dtype=ti.f32, ndim=2), nbr: _NDA(dtype=ti.i32, ndim=2),
+                S2: _NDA(dtype=ti.f32, ndim=2), nbr2: _NDA(dtype=ti.i32, ndim=2),
+                has_far: ti.i32, U: _NDA(dtype=ti.f32, ndim=2)):
+    """The coefficient slots of the compact layout, voxel i in column i + 1 (one thread per
+    row): slot 0 ``Q_ii``, slots 1..13 the offsets 14..26 (0 where the neighbour is absent),
+    with ``has_far`` slots 14..16 the far offsets +2 along i, j, k."""
+    for i in range(S.shape[0]):
+        U[0, i + 1] = S[i, CENTRE]
+        for o in ti.static(range(1, _UPPER)):
+            U[o, i + 1] = S[i, CENTRE + o] if nbr[i, CENTRE + o] >= 0 else 0.0
+        if has_far:
+            for a in ti.static(range(FAR // 2)):
+                U[_UPPER + a, i + 1] = S2[i, 2 * a + 1] if nbr2[i, 2 * a + 1] >= 0 else 0.0
+
+
 def _compact_lanes(dtype) -> int:
     """SIMD rows per block: 4, float32 or float64 (a float64 AVX2 register; 8 float32 rows
     measured slower: sub-runs of ~19 voxels leave 19 % of 8-row lanes idle, and the wider
@@ -243,43 +300,26 @@ def _first_offsets(nbr, far, rows) -> np.ndarray:
 
 
 def _compact_layout(S, nbr, far) -> dict:
-    """The compact layout of a checked stencil (numpy, vectorised over voxels; the loops run
-    over the 8 columns and 6 far offsets). See :class:`CompactStencil`."""
+    """The compact layout of a checked stencil: the per-row columns and the coefficient slots
+    by two Taichi passes over the rows (:func:`_row_columns`, :func:`_fill_slots`), the runs
+    and sub-runs by numpy scans over the 8 columns and 6 far offsets. See
+    :class:`CompactStencil`."""
     n = S.shape[0]
     rows = np.arange(n, dtype=np.int32)
-    present = nbr >= 0
+    # per row: presence bits, per column its neighbours' offset (one Taichi pass over nbr)
+    n_col = len(_COLUMNS) + (FAR if far is not None else 0)
     bits = np.zeros(n, np.uint32)
-    for o in range(STENCIL):
-        if o != CENTRE:
-            bits |= present[:, o].astype(np.uint32) << np.uint32(_BIT[o])
-    if far is not None:
-        for a in range(FAR):
-            bits |= (far[1][:, a] >= 0).astype(np.uint32) << np.uint32(_FAR_BIT + a)
+    value = np.zeros((n_col, n), np.int32)
+    defined = np.zeros((n_col, n), np.int8)
+    gap = np.zeros(n, np.int8)
+    nbr2 = far[1] if far is not None else np.full((1, FAR), -1, np.int32)
+    if n:
+        _row_columns(nbr, nbr2, int(far is not None), bits, value, defined, gap)
+    defined, gap = defined.view(bool), gap.view(bool)
     # runs: maximal rows (i, j, k), (i, j, k+1), ... = consecutive band indices
     cont = np.zeros(n, bool)
     cont[1:] = nbr[1:, CENTRE - 1] == rows[:-1]
     run_id = np.cumsum(~cont)
-    # per row and column: the offset j - e - dk of its present neighbours j (one value unless
-    # the column has a gap among the row's 3 neighbours)
-    n_col = len(_COLUMNS) + (FAR if far is not None else 0)
-    value = np.zeros((n_col, n), np.int32)
-    defined = np.zeros((n_col, n), bool)
-    gap = np.zeros(n, bool)
-    big = np.iinfo(np.int32).max
-    for c, offs in enumerate(_COLUMN_OFFSETS):
-        J = nbr[:, offs]
-        p = J >= 0
-        cand = J - rows[:, None] - np.array([-1, 0, 1], np.int32)
-        low = np.where(p, cand, big).min(axis=1)
-        high = np.where(p, cand, -big).max(axis=1)
-        defined[c] = p.any(axis=1)
-        gap |= defined[c] & (low != high)
-        value[c] = np.where(defined[c], low, 0)
-    if far is not None:
-        for a in range(FAR):
-            c = len(_COLUMNS) + a
-            defined[c] = far[1][:, a] >= 0
-            value[c] = np.where(defined[c], far[1][:, a] - rows, 0)
     # sub-runs: split runs where a column's offset changes (a gap in a neighbour column) and
     # around rows with a gap inside their own 3 neighbours of a column
     split = ~cont | gap
@@ -328,11 +368,9 @@ def _compact_layout(S, nbr, far) -> dict:
         raise ValueError(f"band too large for the compact layout ({n} voxels; needs "
                          f"{size} < 2^30 words)")
     D = zeros_aligned(size, np.float32)
-    U = D[:mbase].reshape(slots, stride)
-    U[0, 1:n + 1] = S[:, CENTRE]
-    U[1:_UPPER, 1:n + 1] = np.where(present[:, CENTRE + 1:], S[:, CENTRE + 1:], 0).T
-    if far is not None:
-        U[_UPPER:, 1:n + 1] = np.where(far[1][:, 1::2] >= 0, far[0][:, 1::2], 0).T
+    if n:
+        S2 = far[0] if far is not None else np.zeros((1, FAR), np.float32)
+        _fill_slots(S, nbr, S2, nbr2, int(far is not None), D[:mbase].reshape(slots, stride))
     D[mbase:mbase + n].view(np.uint32)[:] = bits
     D[rbase:].view(np.int32)[:] = table.reshape(-1)
     return dict(D=D, stride=int(stride), mbase=int(mbase), rbase=int(rbase),
