@@ -7,6 +7,7 @@ Deterministic: the same seed gives bitwise identical results.
 """
 
 import numpy as np
+import taichi as ti
 
 from .pcg import pcg_batched
 from .stencil import as_numpy, check_far, check_stencil, far_arrays, stencil_arrays
@@ -172,12 +173,28 @@ def probe_covariance(Z: np.ndarray, U: np.ndarray, nbr: np.ndarray, den: np.ndar
     estimate from j's probes errs over j's colour instead; the two errors are independent
     (different signs), so their mean halves the error variance. 0 where j is not in the band.
     """
-    n = len(Z)
-    cov = np.zeros((n, 3), np.float32)
-    for e, o in enumerate(FACE_PLUS):  # three axes, each vectorised over the band
-        i = np.flatnonzero(nbr[:, o] >= 0)
-        j = nbr[i, o].astype(np.int64)
-        from_i = np.einsum("ij,ij->i", Z[i], U[j], dtype=np.float64) / den[i]
-        from_j = np.einsum("ij,ij->i", Z[j], U[i], dtype=np.float64) / den[j]
-        cov[i, e] = 0.5 * (from_i + from_j)
+    cov = np.zeros((len(Z), 3), np.float32)
+    if len(Z):
+        _covariance(np.ascontiguousarray(Z, np.float32), np.ascontiguousarray(U, np.float32),
+                    np.ascontiguousarray(nbr, np.int32), np.ascontiguousarray(den, np.float64),
+                    cov)
     return cov
+
+
+@ti.kernel
+def _covariance(Z: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                U: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                den: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                cov: ti.types.ndarray(dtype=ti.f32, ndim=2)):
+    """:func:`probe_covariance`, one thread per voxel i (float64 sums over the probes in
+    order; each entry written by one thread)."""
+    for i in range(Z.shape[0]):
+        for e in ti.static(range(3)):
+            j = nbr[i, ti.static(FACE_PLUS[e])]
+            if j >= 0:
+                from_i, from_j = ti.f64(0.0), ti.f64(0.0)
+                for k in range(Z.shape[1]):
+                    from_i += ti.cast(Z[i, k], ti.f64) * ti.cast(U[j, k], ti.f64)
+                    from_j += ti.cast(Z[j, k], ti.f64) * ti.cast(U[i, k], ti.f64)
+                cov[i, e] = ti.cast(0.5 * (from_i / den[i] + from_j / den[j]), ti.f32)
