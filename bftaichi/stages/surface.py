@@ -106,6 +106,9 @@ def _check_voxels(ijk, values, observed, voxel_size) -> tuple[np.ndarray, np.nda
     if np.any(span > _MAX_SPAN):
         raise BftaichiError(f"ijk spans {span.tolist()} voxels; at most {_MAX_SPAN} per axis "
                             "are supported")
+    key = _linear_key(ijk, ijk.min(axis=0), span)
+    if np.all(key[1:] > key[:-1]):  # sorted and unique already (a band is): no copies
+        return ijk, values, observed, voxel_size
     order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))
     ijk, values, observed = ijk[order], values[order], observed[order]
     dup = np.all(ijk[1:] == ijk[:-1], axis=1)
