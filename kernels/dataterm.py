@@ -163,11 +163,10 @@ def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot
                    spacing: ti.f64, gate: ti.f64, block_keys: ti.template(),
                    block_table: ti.template(), ref: ti.template(), scratch: ti.template(),
                    blocks: ti.template()) -> ti.i32:
-    """Sample j (camera depth ``z`` > 0) of pixel row ``vs``: the band indices of its cell's
-    corners into ``scratch[vs, j + mf]`` (corner 7 set to -1 where a corner is outside the
-    band, -2 where the side gate drops the sample: steps 3 and 3b of the kernels.observe
-    docstring), through the row's block cache ``blocks[vs, j + mf]``. Returns SAMPLE_ACCEPTED,
-    SAMPLE_DROPPED or SAMPLE_GATED."""
+    """Sample j (depth ``z`` > 0) of pixel row ``vs``: its cell's corners (band indices) into
+    ``scratch[vs, j + mf]``, corner 7 -1 where one is outside the band, -2 where the side gate
+    drops it (kernels.observe, steps 3 and 3b), through the row's block cache ``blocks[vs, j +
+    mf]``. Returns SAMPLE_ACCEPTED, SAMPLE_DROPPED or SAMPLE_GATED."""
     c0 = floor_i32(o + z * m_ray)
     b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
     # block cache per sample index j: sample j of the next pixels in the row is mostly in
@@ -262,10 +261,8 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
             # corner indices wait in this row's scratch); pass 1 adds the accepted samples
             # (or writes rows) with w = 1 / (n_acc sigma^2).
             n_acc = 0
-            # the misfit adds only the samples near the surface (MISFIT_NEAR); of the others it
-            # needs only whether min(n_acc, share) is reached, so they are looked up after the
-            # near ones and only while it is not (the same n_acc share, fewer lookups)
-            # (a run-time loop: the lookup below is compiled once)
+            # the misfit adds only the samples near the surface (MISFIT_NEAR): it looks those
+            # up first, the others only until min(n_acc, share) is settled (run-time sweeps)
             for sweep in range(ti.static(2 if mode == MODE_MISFIT else 1)):
                 for j in range(-mf, m + 1):
                     z = D + ti.cast(j, ti.f64) * spacing
