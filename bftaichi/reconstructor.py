@@ -28,7 +28,6 @@ Methods that return geometry take ``local=True`` for the local frame (float32-ex
 
 from __future__ import annotations
 
-import gc
 import os
 import time
 from pathlib import Path
@@ -209,16 +208,15 @@ class Reconstructor:
         return out
 
 
-_COLLECT_MIN = 100_000  # band voxels from which each solve sub-stage ends with a gc.collect()
+_COLLECT_MIN = 100_000  # band voxels from which each solve sub-stage frees compile arguments
 
 
 class _Lap:
-    """Seconds of each sub-stage of :meth:`Reconstructor.solve`, in order. Each sub-stage ends
-    with a garbage collection: Taichi keeps the arguments of a kernel's compiling call in a
-    reference cycle, so a stage's large temporaries (probe blocks, layout tables) would
-    otherwise stay resident into the next stage (~90 MB at the probes on redkitchen at 2 cm).
-    Only for bands of at least :data:`_COLLECT_MIN` voxels (``collect``): a collection costs
-    ~0.06 s, more than a small band's temporaries are worth (a scan solves every step)."""
+    """Seconds of each sub-stage of :meth:`Reconstructor.solve`, in order. With ``collect``
+    (bands of at least :data:`_COLLECT_MIN` voxels) each sub-stage ends with
+    :func:`kernels.stencil.free_compile_arguments`, so its large temporaries (layout tables,
+    probe vectors) do not stay resident into the next (~90 MB at the probes on redkitchen at
+    2 cm); below that the ~0.06 s it costs is worth more (a scan solves every step)."""
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
@@ -227,7 +225,9 @@ class _Lap:
 
     def __call__(self, name: str) -> None:
         if self.collect:
-            gc.collect()
+            from kernels.stencil import free_compile_arguments
+
+            free_compile_arguments()
         t1 = time.perf_counter()
         self.seconds[name] = round(t1 - self.t0, 4)
         self.t0 = t1

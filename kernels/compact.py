@@ -31,8 +31,6 @@ _TAIL = 16  # zero rows after the last voxel (whole-block loads past the end sta
 _INDEX_MASK = 0x3FFFFFFF  # see _CompactKernels: makes i + r provably non-wrapping for LLVM
 _STRIDE_MOD, _STRIDE_REM = 1024, 400  # slot stride = 400 mod 1024 floats (1600 B mod 4 KiB)
 
-
-
 _NDA = ti.types.ndarray
 _BIG = np.iinfo(np.int32).max
 _N_NEAR = len(_COLUMNS)

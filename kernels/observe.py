@@ -98,7 +98,6 @@ previous cell before the atomics (-10 % at stride 1, slower at stride 2, 3x the 
 an unrolled corner loop (no gain).
 """
 
-import gc
 import math
 import os
 
@@ -113,7 +112,7 @@ from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P
                        superpixels, window_sums)
 from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table
-from .stencil import zeros_aligned
+from .stencil import free_compile_arguments, zeros_aligned
 
 def accumulator_parts() -> int:
     """Copies of the accumulators: one per CPU thread of the Taichi runtime (of the machine,
@@ -292,9 +291,7 @@ class Observer:
         need them. :meth:`integrate`, :meth:`diagonal` and :meth:`finalize` then raise until
         :meth:`reset`."""
         self.S_acc = self.h_acc = None
-        # Taichi leaves the arguments of a kernel's compiling call in a reference cycle: without
-        # a collection the accumulators stay resident until the next one, well into the solve
-        gc.collect()
+        free_compile_arguments()  # else the compiling calls' references keep them resident
 
     def _data_term(self) -> tuple:
         if self.S_acc is None:

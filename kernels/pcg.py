@@ -28,19 +28,17 @@ K = 16 block costs 2.7-4.6 ns per voxel and vector (5-7x CSR SpMV, 1.7-3.2x CSR 
 ~400 bytes per voxel) take about as long as the product.
 """
 
-import gc
-
 import numpy as np
 
 from .compact import CompactStencil
 from .layout import CENTRE
 from .stencil import (CHUNK, GatherKernels, as_block, check_far, check_stencil, column_blocks,
-                      far_arrays, flat_op, gather_kernels, padded_block, stencil_arrays,
-                      zeros_aligned)
+                      far_arrays, flat_op, free_compile_arguments, gather_kernels,
+                      padded_block, stencil_arrays, zeros_aligned)
 
 _RUNNING, _CONVERGED, _BREAKDOWN, _STAGNATED = 0, 1, 2, 3
 _STALLS = 2  # restarts in a row without a 10 % smaller true residual: stagnated
-_COLLECTED = set()  # kernel sets whose compiling block was followed by a gc.collect()
+_COMPILED = set()  # kernel sets (id) whose compiling block has run
 
 
 def _pcg_block(ker: GatherKernels, product, B, X, dinv, tol: float, maxiter: int) -> list:
@@ -216,12 +214,9 @@ def pcg_batched(S, nbr, B, X0=None, tol: float = 1e-6, maxiter: int = 1000,
         columns += _pcg_block(ker, _product(ker, op, compact, n, b - a),
                               padded_block(B[:, a:b], dtype), Xb, dinv, tol, maxiter)
         X[:, a:b] = Xb[1:]
-        if id(ker) not in _COLLECTED:
-            # Taichi keeps the arguments of a kernel's compiling call in a reference cycle:
-            # after the block that compiled these kernels, its vectors (five (N+1, K) blocks)
-            # would stay resident until the next garbage collection
-            _COLLECTED.add(id(ker))
-            gc.collect()
+        if id(ker) not in _COMPILED:  # this block compiled them: free its five vector blocks
+            _COMPILED.add(id(ker))
+            free_compile_arguments()
     n_bad = sum(not c["converged"] for c in columns)
     return X, dict(converged=n_bad == 0, iterations=[c["iterations"] for c in columns],
                    relative_residuals=[c["relative_residual"] for c in columns],
