@@ -288,6 +288,87 @@ class Posterior:
         mesh.vertex_attributes["sigma_pos"] = sigma_pos
         return mesh
 
+    def query(self, points_W) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The posterior at arbitrary points, from numpy: ``(sdf, grad, sigma, observed)``.
+
+        Args:
+            points_W: (M, 3) or (3,) world points, metres (the frame of the input poses).
+        Returns:
+            ``sdf`` (M,) float32 trilinear posterior mean, metres, positive in free space;
+            ``grad`` (M, 3) float32 unit normal (the normalised analytic gradient of that
+            trilinear mean, world frame); ``sigma`` (M,) float32 posterior std of the SDF,
+            ``sqrt(trilinear var)``, metres; ``observed`` (M,) bool, True where all 8 corners
+            of the point's cell are band voxels the bootstrap observed. Where ``observed`` is
+            False, ``sdf`` and ``sigma`` are NaN and ``grad`` is 0.
+
+        The values are those of :class:`kernels.SDFField`'s accessors (the same ``@ti.func``,
+        run by one kernel over the points), so a Taichi program and a numpy caller read the
+        same numbers. Initialises Taichi on the CPU if nothing has."""
+        pts = np.asarray(points_W, dtype=np.float64)
+        if pts.ndim == 1 and pts.shape == (3,):
+            pts = pts[None]
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"query: points_W must have shape (M, 3), got {pts.shape}")
+        from kernels.embed import query_points
+
+        local = np.ascontiguousarray(pts - self.origin)  # NaN rows stay unobserved
+        m = len(local)
+        sdf, sigma = np.empty(m, np.float32), np.empty(m, np.float32)
+        grad, observed = np.zeros((m, 3), np.float32), np.zeros(m, np.uint8)
+        if m and len(self.ijk):
+            query_points(self._field(), local, sdf, grad, sigma, observed)
+        seen = observed.astype(bool)
+        sdf[~seen] = np.nan
+        sigma[~seen] = np.nan
+        grad[~seen] = 0.0
+        return sdf, grad, sigma, seen
+
+    def to_dense(self, bounds_min, bounds_max) -> dict:
+        """The voxels of a world box as dense arrays, NaN where the bootstrap did not observe.
+
+        Args:
+            bounds_min, bounds_max: (3,) world corners of the box, metres.
+        Returns:
+            a dict: ``sdf`` and ``sigma`` (X, Y, Z) float32 arrays, metres (the posterior mean
+            and std of every voxel whose centre lies in the box; NaN where the voxel is not a
+            band voxel with ``weight > 0``); ``origin_W`` (3,) float64 the world centre of
+            voxel ``[0, 0, 0]``; ``voxel_size`` metres. Voxel ``[a, b, c]`` is centred at
+            ``origin_W + (a, b, c) * voxel_size``. Values at voxel centres are the band's own
+            (no interpolation); :meth:`query` interpolates between them."""
+        lo, hi = (np.asarray(b, np.float64) for b in (bounds_min, bounds_max))
+        if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all()
+                                                         and np.isfinite(hi).all()):
+            raise ValueError("to_dense: bounds_min and bounds_max must be finite 3-vectors")
+        if (hi < lo).any():
+            raise ValueError(f"to_dense: bounds_max {hi} is below bounds_min {lo}")
+        vs = self.voxel_size
+        i0 = np.ceil((lo - self.origin) / vs - 0.5).astype(np.int64)  # first centre >= lo
+        i1 = np.floor((hi - self.origin) / vs - 0.5).astype(np.int64)  # last centre <= hi
+        shape = np.maximum(i1 - i0 + 1, 0)
+        if np.prod(shape, dtype=np.float64) * 8 > 8 << 30:
+            raise ValueError(f"to_dense: the box holds {shape.tolist()} voxels, more than 8 GiB "
+                             "of output: ask for a smaller box")
+        sdf = np.full(tuple(shape), np.nan, np.float32)
+        sigma = np.full(tuple(shape), np.nan, np.float32)
+        rel = self.ijk.astype(np.int64) - i0
+        inside = ((rel >= 0) & (rel < shape)).all(axis=1) & (self.weight > 0)
+        at = tuple(rel[inside].T)
+        sdf[at] = self.mean[inside]
+        sigma[at] = self.sigma[inside]
+        return {"sdf": sdf, "sigma": sigma, "origin_W": self.origin + (i0 + 0.5) * vs,
+                "voxel_size": vs}
+
+    def _field(self):
+        """The :class:`kernels.SDFField` of this posterior (built once, local frame)."""
+        if getattr(self, "_sdf_field", None) is None:
+            from kernels.embed import SDFField
+
+            from . import backend
+            if not backend.is_initialized():
+                backend.init()
+            self._sdf_field = SDFField.from_posterior(self)
+        return self._sdf_field
+
     def warm_start(self, ijk: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """``x0`` with the voxels of ``ijk`` that this posterior also holds set to its mean
         (a PCG start when frames are added)."""

@@ -24,6 +24,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", default="out/api", help="output folder")
     args = ap.parse_args(argv)
 
+    import numpy as np
+
     import bftaichi as bf
     from bftaichi.config import parse_slice
     from bftaichi.formats.synthetic import SyntheticDataset
@@ -48,6 +50,9 @@ def main(argv=None) -> dict:
     print(f"{len(recon.frames)} frames -> band of {len(post.ijk):,} voxels, MAP converged "
           f"{post.solver['converged']} in {post.solver['iterations']} iterations")
     print(f"mesh: {len(mesh.vertices):,} vertices, median sigma {1000 * float(sorted(sigma)[len(sigma) // 2]):.2f} mm")
+    sdf, _, _, seen = post.query(mesh.vertices)  # the posterior at any world points (numpy)
+    print(f"posterior SDF at the mesh's vertices: median |sdf| "
+          f"{1000 * float(np.median(np.abs(sdf[seen]))):.3f} mm over {int(seen.sum()):,} vertices")
     print(f"next-best view: candidate {best['index']} at {[round(r[3], 3) for r in best['pose'][:3]]}, "
           f"utility {best['utility']:.3e} m^2")
     print(f"wrote {', '.join(sorted(p.name for p in Path(out).iterdir()))} to {out}/")

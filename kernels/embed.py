@@ -289,3 +289,21 @@ class SDFField:
         UNOBSERVED where not observed."""
         d, n, s, valid = self.query(p)
         return s
+
+
+@ti.kernel
+def query_points(field: ti.template(), p: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                 sdf: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                 grad: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                 sigma: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                 observed: ti.types.ndarray(dtype=ti.u8, ndim=1)):
+    """:meth:`SDFField.query` at each row of ``p`` (M, 3) (the field's frame, metres), into
+    ``sdf`` (M,), ``grad`` (M, 3), ``sigma`` (M,) and ``observed`` (M,): the numpy front door
+    of ``bftaichi.Posterior.query``. One thread per point, pure reads (deterministic)."""
+    for i in range(p.shape[0]):
+        d, n, s, v = field.query(ti.Vector([p[i, 0], p[i, 1], p[i, 2]]))
+        sdf[i] = d
+        sigma[i] = s
+        observed[i] = ti.cast(v, ti.u8)
+        for a in ti.static(range(3)):
+            grad[i, a] = n[a]

@@ -84,7 +84,8 @@ _AXIS_STRIDE = (9, 3, 1)  # offset o of (di, dj, dk) is CENTRE + 9 di + 3 dj + d
 def _add_curvature_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
                          nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
                          S2: ti.types.ndarray(dtype=ti.f32, ndim=2),
-                         nbr2: ti.types.ndarray(dtype=ti.i32, ndim=2), c: ti.f64):
+                         nbr2: ti.types.ndarray(dtype=ti.i32, ndim=2), c: ti.f64,
+                         W: ti.types.ndarray(dtype=ti.f32, ndim=2), weighted: ti.i32):
     """Row i of ``c D^T D`` (second differences along the axes, see :func:`add_curvature_prior`)
     into S (offsets 0 and +-1 along each axis, added) and S2 / nbr2 (offsets +-2, written).
 
@@ -110,21 +111,21 @@ def _add_curvature_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
                 pp = nbr[p, op]
             vi = ti.f64(0.0)
             if m >= 0 and p >= 0:
-                vi = 1.0
+                vi = 1.0 if weighted == 0 else ti.cast(W[i, ax], ti.f64)
             vm = ti.f64(0.0)
             if mm >= 0:
-                vm = 1.0
+                vm = 1.0 if weighted == 0 else ti.cast(W[m, ax], ti.f64)
             vp = ti.f64(0.0)
             if pp >= 0:
-                vp = 1.0
+                vp = 1.0 if weighted == 0 else ti.cast(W[p, ax], ti.f64)
             diag += c * (4.0 * vi + vm + vp)
             if m >= 0:
                 S[i, om] = ti.cast(ti.cast(S[i, om], ti.f64) - 2.0 * c * (vi + vm), ti.f32)
             if p >= 0:
                 S[i, op] = ti.cast(ti.cast(S[i, op], ti.f64) - 2.0 * c * (vi + vp), ti.f32)
-            S2[i, 2 * ax] = ti.cast(c * vm, ti.f32)
+            S2[i, 2 * ax] = ti.cast(ti.cast(S2[i, 2 * ax], ti.f64) + c * vm, ti.f32)
             nbr2[i, 2 * ax] = mm
-            S2[i, 2 * ax + 1] = ti.cast(c * vp, ti.f32)
+            S2[i, 2 * ax + 1] = ti.cast(ti.cast(S2[i, 2 * ax + 1], ti.f64) + c * vp, ti.f32)
             nbr2[i, 2 * ax + 1] = pp
         S[i, CENTRE] = ti.cast(ti.cast(S[i, CENTRE], ti.f64) + diag, ti.f32)
 
@@ -164,8 +165,44 @@ def add_curvature_prior(S, nbr, *, lam2: float) -> tuple:
     S2 = np.zeros((n, 6), np.float32)
     nbr2 = np.full((n, 6), -1, np.int32)
     if n:
-        _add_curvature_prior(S, nbr, S2, nbr2, float(lam2))
+        _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), S2, 0)
     return S2, nbr2
+
+
+@ti.kernel
+def _curvature_weights(mean: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                       nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                       W_old: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                       dW: ti.types.ndarray(dtype=ti.f32, ndim=2), inv_c2: ti.f64):
+    """The robust weight ``w = 1 / (1 + d^2 / c^2)`` of each second difference ``d`` of
+    ``mean`` (centred at voxel i, along each axis; 0 where it does not exist), written to W_old,
+    and its change ``w - w_old`` to dW. One thread per voxel (gather)."""
+    for i in range(nbr.shape[0]):
+        for ax in ti.static(range(3)):
+            m = nbr[i, ti.static(CENTRE - _AXIS_STRIDE[ax])]
+            p = nbr[i, ti.static(CENTRE + _AXIS_STRIDE[ax])]
+            w = ti.f64(0.0)
+            if m >= 0 and p >= 0:
+                d = ti.cast(mean[m], ti.f64) - 2.0 * ti.cast(mean[i], ti.f64) + ti.cast(
+                    mean[p], ti.f64)
+                w = 1.0 / (1.0 + d * d * inv_c2)
+            dW[i, ax] = ti.cast(w - ti.cast(W_old[i, ax], ti.f64), ti.f32)
+            W_old[i, ax] = ti.cast(w, ti.f32)
+
+
+def reweight_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float) -> None:
+    """One iteratively reweighted step of the robust curvature prior
+    ``lam2 c^2 sum log(1 + d^2 / c^2)`` (a Cauchy / Lorentzian penalty of each second difference
+    ``d`` of :func:`add_curvature_prior`, scale ``c = scale_m``): its weights at ``mean``,
+    ``w = 1 / (1 + d^2 / c^2)``, replace the weights ``W`` (N, 3) float32 the stencil holds
+    (all ones after :func:`add_curvature_prior`), in ``S`` and the far part ``far = (S2, nbr2)``,
+    in place. Where the field bends by much more than ``c`` (creases, thin parts) the prior lets
+    go; where it is smooth it keeps the full strength ``lam2``."""
+    S2, nbr2 = far
+    dW = np.empty_like(W)
+    _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W, dW,
+                       1.0 / float(scale_m) ** 2)
+    _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
 
 
 def _shape_of(arr, name: str) -> tuple:

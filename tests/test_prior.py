@@ -19,7 +19,8 @@ from scipy.sparse.csgraph import connected_components
 
 from kernels.band import build_band
 from kernels.stencil import apply_Q, check_far, check_stencil
-from kernels.prior import ANCHOR_MODES, add_curvature_prior, add_prior
+from kernels.prior import (ANCHOR_MODES, add_curvature_prior, add_prior,
+                           reweight_curvature_prior)
 
 VOXEL = 0.01
 TAU_B = 0.02
@@ -185,9 +186,11 @@ def test_bad_arguments_are_rejected(band, bad):
         add_prior(**args, **kw)
 
 
-def reference_curvature(ijk, lam2):
+def reference_curvature(ijk, lam2, x=None, c=None):
     """lam2 D^T D (CSR float64): one row of D per voxel j and axis e with j - e and j + e in
-    the band (found by coordinates), the second difference x_{j-e} - 2 x_j + x_{j+e}."""
+    the band (found by coordinates), the second difference x_{j-e} - 2 x_j + x_{j+e}. With a
+    field ``x`` and a scale ``c``: the robust prior's lam2 D^T diag(w) D at x,
+    ``w = 1 / (1 + (D x)^2 / c^2)``."""
     index = {tuple(v): k for k, v in enumerate(ijk.tolist())}
     rows, cols, vals = [], [], []
     r = 0
@@ -201,7 +204,8 @@ def reference_curvature(ijk, lam2):
                 vals += [1.0, -2.0, 1.0]
                 r += 1
     D = sp.csr_matrix((vals, (rows, cols)), shape=(r, len(ijk)))
-    return (lam2 * (D.T @ D)).tocsr()
+    w = np.ones(r) if x is None else 1.0 / (1.0 + (D @ x) ** 2 / c ** 2)
+    return (lam2 * (D.T @ sp.diags(w) @ D)).tocsr()
 
 
 def curvature_csr(S, nbr, S2, nbr2):
@@ -253,6 +257,29 @@ def test_curvature_prior_adds_to_an_existing_stencil(band):
     Q = curvature_csr(S, nbr, S2, nbr2)
     Q_ref = stencil_to_csr(S0, nbr) + reference_curvature(band["ijk"], LAM)
     assert abs(Q - Q_ref).max() <= 1e-5 * abs(Q_ref).max()
+
+
+def test_robust_curvature_prior_reweights_to_the_reference_at_the_last_field(band):
+    """Each reweighting replaces the weights the stencil holds (it does not stack them): after
+    two steps at two fields, S and the far part equal ``lam2 D^T diag(w) D`` with the weights
+    of the second field; a crease (second differences >> c) gets a weak prior, a plane the full
+    strength."""
+    nbr, ijk, c = band["nbr"], band["ijk"], 0.3 * VOXEL
+    n = len(ijk)
+    S = np.zeros((n, 27), np.float32)
+    far = add_curvature_prior(S, nbr, lam2=LAM)
+    W = np.ones((n, 3), np.float32)
+    sphere = (np.linalg.norm((ijk + 0.5) * VOXEL, axis=1) - 0.025).astype(np.float32)
+    crease = (np.abs((ijk[:, 0] + 0.5) * VOXEL) + 0.5 * (ijk[:, 2] + 0.5) * VOXEL
+              ).astype(np.float32)  # a V along x: second differences of 1 voxel at x = 0
+    reweight_curvature_prior(S, far, nbr, sphere, W, lam2=LAM, scale_m=c)
+    reweight_curvature_prior(S, far, nbr, crease, W, lam2=LAM, scale_m=c)
+    Q = curvature_csr(S, nbr, *far)
+    Q_ref = reference_curvature(ijk, LAM, crease.astype(np.float64), c)
+    assert abs(Q - Q_ref).max() <= 1e-5 * LAM
+    check_far(far, S + np.eye(1, 27, 13, dtype=np.float32), rtol=0)
+    at_crease = np.abs(ijk[:, 0] + 0.5) < 1
+    assert W[at_crease, 0].max() < 0.1 and W[~at_crease].max() > 0.99
 
 
 @pytest.mark.parametrize("bad", ["lam2", "shape", "dtype"])

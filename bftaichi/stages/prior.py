@@ -42,6 +42,12 @@ class PriorConfig:
     and the MAP is solved again. 1000 per voxel^2 is about the data term of 40 frames at 2 cm;
     10 was too weak to hold the voxels against straddling samples."""
 
+    curvature_scale: float = 0.0
+    """Scale ``c`` of the robust curvature prior, in voxels (0 = the Gaussian prior). With
+    ``c > 0`` each second difference ``d`` costs ``lam2 c^2 log(1 + d^2 / c^2)`` instead of
+    ``lam2 d^2``: full strength where the field is smooth (``|d| << c``), letting go at creases
+    and thin parts (``|d| >> c``). Solved by reweighting (:data:`ROBUST_PASSES` MAP solves)."""
+
     eps: float = 1e-4
     """``eps * I``, per voxel^2: keeps Q positive definite where nothing else does."""
 
@@ -57,6 +63,7 @@ class PriorConfig:
     def check(self) -> None:
         check_range("prior.curvature", self.curvature, 0.0)
         check_range("prior.lam", self.lam, 0.0)
+        check_range("prior.curvature_scale", self.curvature_scale, 0.0, 100.0)
         check_range("prior.lam_b", self.lam_b, 0.0)
         check_range("prior.free", self.free, 0.0)
         check_choice("prior.anchors", self.anchors, ("none", "boundary", "all"))

@@ -46,8 +46,13 @@ class SolverConfig:
         check_range("solver.seed", self.seed, 0, MAX_SEED)
 
 
+ROBUST_PASSES = 2
+"""Reweighting steps of the robust curvature prior (``prior.curvature_scale > 0``)."""
+
+
 def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: float,
-              voxel_size_m: float, free: float, passes: int = 4) -> tuple[np.ndarray, dict]:
+              voxel_size_m: float, free: float, passes: int = 4, robust=None,
+              ) -> tuple[np.ndarray, dict]:
     """The MAP of ``system`` (:class:`~.prior.System`) from ``x0``, then the free-space
     inequality: a voxel the bootstrap saw as free (observed, ``tsdf > trunc_m``) whose mean fell
     below half a voxel is anchored to its TSDF value with strength ``free`` per voxel^2 (in
@@ -72,11 +77,19 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
 
     mean, info = solve(x0)
     iterations, n_pass, n_free, n_anchored = info["iterations"], 0, 0, 0
-    if free > 0:
-        k = np.float32(free / voxel_size_m ** 2)
-        free_mask = band.observed & (band.tsdf > trunc_m)
-        active = np.zeros(len(band), bool)
-        for n_pass in range(1, passes + 1):
+    free_mask = band.observed & (band.tsdf > trunc_m)
+    active = np.zeros(len(band), bool)
+    k = np.float32(free / voxel_size_m ** 2)
+    for step in range(1 + (ROBUST_PASSES if robust is not None else 0)):
+        if step:  # the robust curvature prior's weights at the last mean (kernels/prior.py)
+            from kernels.prior import reweight_curvature_prior
+
+            reweight_curvature_prior(S, system.far, system.nbr, mean, robust["W"],
+                                     lam2=robust["lam2"], scale_m=robust["scale_m"])
+            compact = CompactStencil(S, system.nbr, system.far, check=False)
+            mean, info = solve(mean)
+            iterations += info["iterations"]
+        for n_pass in range(1, passes + 1) if free > 0 else ():
             viol = free_mask & ~active & (mean < 0.5 * voxel_size_m)
             if not viol.any():
                 n_pass -= 1
@@ -87,6 +100,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
             compact.set_diagonal(S[:, CENTRE])
             mean, info = solve(mean)
             iterations += info["iterations"]
+    if free > 0:
         n_free, n_anchored = int(free_mask.sum()), int(active.sum())
     stats = {"converged": info["converged"], "iterations": iterations,
              "relative_residual": info["relative_residual"]}
