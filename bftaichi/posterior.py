@@ -148,6 +148,7 @@ class Posterior:
     observations: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
     origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _sdf_field: object = field(default=None, init=False, repr=False)  # built by query()
 
     ijk = property(lambda self: self.band.ijk, doc="(N, 3) int32 band voxel indices (local "
                    "grid), sorted.")
@@ -354,13 +355,13 @@ class Posterior:
         inside = ((rel >= 0) & (rel < shape)).all(axis=1) & (self.weight > 0)
         at = tuple(rel[inside].T)
         sdf[at] = self.mean[inside]
-        sigma[at] = self.sigma[inside]
+        sigma[at] = np.sqrt(np.maximum(self.var[inside], 0))
         return {"sdf": sdf, "sigma": sigma, "origin_W": self.origin + (i0 + 0.5) * vs,
                 "voxel_size": vs}
 
     def _field(self):
         """The :class:`kernels.SDFField` of this posterior (built once, local frame)."""
-        if getattr(self, "_sdf_field", None) is None:
+        if self._sdf_field is None:
             from kernels.embed import SDFField
 
             from . import backend

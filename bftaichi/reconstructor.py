@@ -157,7 +157,7 @@ class Reconstructor:
             x0 = self.posterior.warm_start(band.ijk, x0)
         mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
                                     voxel_size_m=vs, free=cfg.prior.free,
-                                    robust=_robust_prior(cfg.prior, vs, len(band)))
+                                    prior=cfg.prior)
         lap("map")
         var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
                                                 probes=variance)
@@ -210,14 +210,6 @@ class Reconstructor:
 
 
 _COLLECT_MIN = 100_000  # band voxels from which each solve sub-stage frees compile arguments
-
-
-def _robust_prior(prior, voxel_size_m: float, n: int) -> dict | None:
-    """The robust curvature prior's state for :func:`solve_map` (None: Gaussian prior)."""
-    if prior.curvature <= 0 or prior.curvature_scale <= 0:
-        return None
-    return {"W": np.ones((n, 3), np.float32), "lam2": prior.curvature / voxel_size_m ** 2,
-            "scale_m": prior.curvature_scale * voxel_size_m}
 
 
 class _Lap:

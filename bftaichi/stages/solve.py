@@ -51,13 +51,16 @@ ROBUST_PASSES = 2
 
 
 def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: float,
-              voxel_size_m: float, free: float, passes: int = 4, robust=None,
+              voxel_size_m: float, free: float, passes: int = 4, prior=None,
               ) -> tuple[np.ndarray, dict]:
     """The MAP of ``system`` (:class:`~.prior.System`) from ``x0``, then the free-space
     inequality: a voxel the bootstrap saw as free (observed, ``tsdf > trunc_m``) whose mean fell
     below half a voxel is anchored to its TSDF value with strength ``free`` per voxel^2 (in
     ``system.S`` and ``system.h``, in place) and the MAP is solved again, warm-started, up to
-    ``passes`` times (``free = 0``: no constraint). Returns ``(mean, stats)``: ``converged``,
+    ``passes`` times (``free = 0``: no constraint). With ``prior`` (the
+    :class:`~.prior.PriorConfig` of ``system``) and ``prior.curvature_scale > 0``, the robust
+    curvature prior is reweighted at the mean and the MAP solved again, :data:`ROBUST_PASSES`
+    times, each followed by the free-space passes. Returns ``(mean, stats)``: ``converged``,
     ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
     ``free_space`` (``passes, anchored, free_voxels``), ``residual_history`` (the last solve's)
     and ``reason`` when PCG stopped early."""
@@ -80,12 +83,15 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     free_mask = band.observed & (band.tsdf > trunc_m)
     active = np.zeros(len(band), bool)
     k = np.float32(free / voxel_size_m ** 2)
-    for step in range(1 + (ROBUST_PASSES if robust is not None else 0)):
+    reweight = prior is not None and prior.curvature > 0 and prior.curvature_scale > 0
+    W = np.ones((len(band), 3), np.float32) if reweight else None  # weights S holds
+    for step in range(1 + (ROBUST_PASSES if reweight else 0)):
         if step:  # the robust curvature prior's weights at the last mean (kernels/prior.py)
             from kernels.prior import reweight_curvature_prior
 
-            reweight_curvature_prior(S, system.far, system.nbr, mean, robust["W"],
-                                     lam2=robust["lam2"], scale_m=robust["scale_m"])
+            reweight_curvature_prior(S, system.far, system.nbr, mean, W,
+                                     lam2=prior.curvature / voxel_size_m ** 2,
+                                     scale_m=prior.curvature_scale * voxel_size_m)
             compact = CompactStencil(S, system.nbr, system.far, check=False)
             mean, info = solve(mean)
             iterations += info["iterations"]
