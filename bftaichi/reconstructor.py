@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,7 @@ class Reconstructor:
         self.frames: list[Frame] = []
         self.posterior: Posterior | None = None
         self._voxels = None  # the bootstrap's export, until the next frame
+        self._n_integrated = 0  # frames integrated ever (default names stay unique)
 
     @property
     def origin(self) -> np.ndarray:
@@ -107,7 +109,7 @@ class Reconstructor:
         (3, 3); ``T_W_C`` (4, 4); optional ``rgb`` (H, W, 3) uint8. ``keep=False`` does not keep
         the frame for :meth:`solve` (the caller then passes its own frame source to ``solve``).
         Raises BftaichiError naming ``name`` (default ``frame-<n>``) for a bad shape, K or pose."""
-        name = name or f"frame-{self.tsdf.n_frames}"
+        name = name or f"frame-{self._n_integrated}"
         K = check_K(K, name)
         T_W_C = check_pose(T_W_C, name)
         depth = np.asarray(depth_m)
@@ -116,10 +118,56 @@ class Reconstructor:
         s = self.config.scene
         depth = clean_depth(depth, s.depth_min_m, s.depth_max_m)
         self.tsdf.integrate(depth, K, T_W_C, rgb=rgb, name=name)
+        self._n_integrated += 1
         self._voxels = None
-        if keep:
+        if keep:  # the colour too when the volume fuses it, so the frame can be removed
+            rgb = (np.ascontiguousarray(rgb) if rgb is not None and self.tsdf.integrate_rgb
+                   else None)
             self.frames.append(Frame(index=len(self.frames), name=name, depth_m=depth, K=K,
-                                     T_W_C=T_W_C, rgb=None))
+                                     T_W_C=T_W_C, rgb=rgb))
+
+    def update_poses(self, poses: dict) -> list[str]:
+        """Move kept frames to corrected poses (after a loop closure) without re-fusing the rest:
+        ``poses`` maps a frame's ``name`` (as given to :meth:`integrate`) to its new ``T_W_C``
+        (4, 4). Each moved frame is subtracted from the bootstrap at its old pose and added at
+        the new one; the TSDF's sums are integers, so the result is bitwise what integrating
+        every frame at its corrected pose gives (in the grid of :attr:`origin`, which the first
+        frame fixed). The next :meth:`solve` rebuilds the band where the surface moved, takes
+        every frame's observations at its current pose and warm-starts from the last solution.
+        Every name and pose is checked before anything changes. Returns the names of the frames
+        that moved (a pose equal to the kept one is skipped)."""
+        moves = [(self._kept(name, "update_poses"), check_pose(T, name))
+                 for name, T in poses.items()]
+        moved = []
+        for i, T in moves:
+            f = self.frames[i]
+            if np.array_equal(T, f.T_W_C):
+                continue
+            self.tsdf.remove(f.depth_m, f.K, f.T_W_C, rgb=f.rgb, name=f.name)
+            self.tsdf.integrate(f.depth_m, f.K, T, rgb=f.rgb, name=f.name)
+            self.frames[i] = replace(f, T_W_C=T)
+            moved.append(f.name)
+        if moved:
+            self._voxels = None
+        return moved
+
+    def remove(self, name: str) -> None:
+        """Take kept frame ``name`` out: subtracted from the bootstrap exactly (bitwise as if it
+        had never been integrated) and dropped from the frames :meth:`solve` observes."""
+        i = self._kept(name, "remove")
+        f = self.frames.pop(i)
+        self.tsdf.remove(f.depth_m, f.K, f.T_W_C, rgb=f.rgb, name=f.name)
+        self._voxels = None
+
+    def _kept(self, name: str, what: str) -> int:
+        """Position in :attr:`frames` of the one kept frame called ``name``."""
+        hits = [i for i, f in enumerate(self.frames) if f.name == name]
+        if len(hits) != 1:
+            raise BftaichiError(
+                f"{what}: {'no' if not hits else len(hits)} kept frames are named {name!r}"
+                + ("; frames integrated with keep=False cannot be moved or removed" if not hits
+                   else "; give each frame a unique name in integrate(..., name=...)"))
+        return hits[0]
 
     def solve(self, frames=None, *, variance: bool = True, frame_iter=None) -> Posterior:
         """Steps 2-6 on everything integrated so far: the band, the observations of ``frames``

@@ -4,7 +4,8 @@ Layout::
 
     block map    root -> pointer(4096 volumes) -> pointer(64^3) -> pointer(16^3)
                       -> {block_slot i32, block_stamp i32}            (one cell per 8^3 block)
-    voxel pool   ndarrays tsdf (S*512,) f32, weight (S*512,) f32 [, rgb (S*512, 3) f32]
+    voxel pool   ndarrays tsdf (S*512,) i64, weight (S*512,) i32 [, rgb (S*512, 4) i32]
+                 (integer sums: fixed-point observations, their count, RGB sums and count)
     slot table   ndarray slot_block (S, 3) i32: block index of the block in each pool slot
     frame list   ndarray frame_list (F, 4) i32: (map block index, slot) of each touched block
     block cache  ndarray cache (65536,) i64: direct-mapped "already listed this frame" cache
@@ -20,8 +21,8 @@ Layout::
   when a ray first reaches it. A block cell holds the block's *slot* (1-based, 0 = none yet)
   and the number of the last frame that touched the block.
 * The voxels of the block in (0-based) slot ``s`` live at ``s * 512 + t`` of the dense *pool*,
-  ``t = 64 a + 8 b + c`` for voxel ``8 b_ijk + (a, b, c)``. A block is thus two contiguous 2 KB
-  runs (tsdf, weight): the integration streams dense memory and looks the sparse map up once per
+  ``t = 64 a + 8 b + c`` for voxel ``8 b_ijk + (a, b, c)``. A block is thus two contiguous runs
+  (tsdf 4 KB, weight 2 KB): the integration streams dense memory and looks the sparse map up once per
   block and frame, never per voxel. The pool grows by doubling (one copy) when a frame allocates
   more blocks than it holds; the sparse map never moves.
 * All volumes of a Taichi program share one block-map tree (one slice per volume) and the
@@ -75,9 +76,12 @@ P_C = 9  # 3: c = K (R_CW (0.5 voxel_size) (1, 1, 1) + t_CW)
 P_M = 12  # 9: M = R_WC K^-1 / block_size, row-major; pixel (u, v) at depth z is in the
 P_O = 21  # 3:    block at floor(o + z M (u, v, 1)), o = t_WC / block_size
 P_TRUNC = 24  # truncation tau_b, metres
-P_MAXW = 25  # weight cap
+P_SCALE = 25  # TSDF_ONE / tau_b: a signed distance (m) to the fixed-point unit
 P_STEP = 26  # activation sample spacing along a ray, blocks
-N_PARAMS = 27
+P_RGB = 27  # 1 if the frame has colour (volumes with colour only)
+N_PARAMS = 28
+TSDF_BITS = 20
+TSDF_ONE = 1 << TSDF_BITS  # fixed point: tsdf 1.0 (= tau_b) is 2^20 (~1e-6 tau_b resolution)
 # Integer counters of a volume (int64 vector shared with the kernels):
 C_OUT = 0  # activation samples outside the block map's index range (all frames)
 C_LISTED = 1  # blocks listed by the current frame (may exceed the list capacity)
@@ -179,23 +183,26 @@ def _activate_row(vs: ti.i32, depth: ti.template(), prm: ti.template(), stride: 
 
 
 @ti.func
-def _integrate_block(n: ti.i32, depth: ti.template(), rgb: ti.template(), prm: ti.template(),
-                     frame_list: ti.template(), tsdf: ti.template(), weight: ti.template(),
-                     color: ti.template(), slot_block: ti.template(), counts: ti.template(),
-                     with_color: ti.template()):
-    """Projective weighted-average update of the 512 voxels of listed block ``n``
-    (DESIGN.md 3.1): (u, v) = nearest pixel of K x_C = floor(K x_C / z_C + 0.5),
-    sdf = D(u, v) - z_C; observed if z_C > 0, D > 0 and sdf >= -tau_b;
-    tsdf_obs = min(1, sdf / tau_b); tsdf <- (W tsdf + tsdf_obs) / (W + 1), [rgb likewise],
-    W <- min(W + 1, max_weight)."""
+def _integrate_block(n: ti.i32, sign: ti.i32, depth: ti.template(), rgb: ti.template(),
+                     prm: ti.template(), frame_list: ti.template(), tsdf: ti.template(),
+                     weight: ti.template(), color: ti.template(), slot_block: ti.template(),
+                     counts: ti.template(), with_color: ti.template()):
+    """Projective update of the 512 voxels of listed block ``n`` (DESIGN.md 3.1), in integer
+    sums: (u, v) = nearest pixel of K x_C = floor(K x_C / z_C + 0.5), sdf = D(u, v) - z_C;
+    observed if z_C > 0, D > 0 and sdf >= -tau_b; q = round(min(1, sdf / tau_b) * 2^20);
+    S <- S + sign q, W <- W + sign [, rgb sums and their count likewise]. The stored TSDF is
+    S / (W 2^20): the average of the observations, exact whatever their order, and a frame
+    integrated with ``sign = -1`` removes exactly what it added with ``sign = +1``."""
     H, W = depth.shape[0], depth.shape[1]
     Wf, Hf = ti.cast(W, ti.f32), ti.cast(H, ti.f32)
     step_i = ti.Vector([prm[P_A], prm[P_A + 3], prm[P_A + 6]])  # K x_C step along +i
     step_j = ti.Vector([prm[P_A + 1], prm[P_A + 4], prm[P_A + 7]])
     step_k = ti.Vector([prm[P_A + 2], prm[P_A + 5], prm[P_A + 8]])
     trunc = ti.cast(prm[P_TRUNC], ti.f32)
-    inv_trunc = ti.cast(1.0 / prm[P_TRUNC], ti.f32)
-    max_w = ti.cast(prm[P_MAXW], ti.f32)
+    scale = ti.cast(prm[P_SCALE], ti.f32)  # 2^20 / tau_b: sdf (m) to fixed point
+    one = ti.cast(TSDF_ONE, ti.f32)
+    sign64 = ti.cast(sign, ti.i64)
+    use_rgb = prm[P_RGB] > 0
     slot = frame_list[n, 3]
     blk = ti.Vector([frame_list[n, 0], frame_list[n, 1], frame_list[n, 2]]) - BLOCK_OFFSET
     for c in ti.static(range(3)):
@@ -226,15 +233,14 @@ def _integrate_block(n: ti.i32, depth: ti.template(), rgb: ti.template(), prm: t
                     sdf = d - z
                     if d > 0 and sdf >= -trunc:
                         i = first + ab * BLOCK + c
-                        obs = ti.min(1.0, sdf * inv_trunc)
-                        w = weight[i]
-                        inv_w1 = 1.0 / (w + 1.0)
-                        tsdf[i] = (w * tsdf[i] + obs) * inv_w1
+                        q = ti.round(ti.min(one, sdf * scale))
+                        tsdf[i] += sign64 * ti.cast(q, ti.i64)
+                        weight[i] += sign
                         if ti.static(with_color):
-                            for k in ti.static(range(3)):
-                                color[i, k] = (w * color[i, k]
-                                               + ti.cast(rgb[v, u, k], ti.f32)) * inv_w1
-                        weight[i] = ti.min(w + 1.0, max_w)
+                            if use_rgb:
+                                for k in ti.static(range(3)):
+                                    color[i, k] += sign * ti.cast(rgb[v, u, k], ti.i32)
+                                color[i, 3] += sign
                         n_obs += 1
     ti.atomic_add(counts[C_UPDATES], n_obs)
 
@@ -243,13 +249,13 @@ def _integrate_block(n: ti.i32, depth: ti.template(), rgb: ti.template(), prm: t
 def _integrate_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
                      rgb: ti.types.ndarray(dtype=ti.u8, ndim=3),
                      prm: ti.types.ndarray(dtype=ti.f64, ndim=1), stride: ti.i32, frame: ti.i32,
-                     vid: ti.i32, slot_map: ti.template(), stamp_map: ti.template(),
+                     sign: ti.i32, vid: ti.i32, slot_map: ti.template(), stamp_map: ti.template(),
                      cache: ti.types.ndarray(dtype=ti.i64, ndim=1),
                      counts: ti.types.ndarray(dtype=ti.i64, ndim=1),
                      frame_list: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                     tsdf: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                     weight: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                     color: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                     tsdf: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                     weight: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                     color: ti.types.ndarray(dtype=ti.i32, ndim=2),
                      slot_block: ti.types.ndarray(dtype=ti.i32, ndim=2),
                      with_color: ti.template()):
     """One frame in one launch: (1) activation, parallel over pixel rows (:func:`_activate_row`);
@@ -257,9 +263,12 @@ def _integrate_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     blocks (:func:`_integrate_block`); otherwise nothing is integrated and the caller grows
     them and calls again with a new frame number.
 
+    ``sign`` +1 adds the frame, -1 removes a frame added before with the same depth and pose.
+
     Determinism: atomics only on integer counters and block stamps, so the listed *set* of
     blocks is deterministic (its order is not); each voxel is updated by the one thread of its
-    block, no float atomics: the voxel values are bitwise reproducible."""
+    block, in integers: the voxel values are bitwise reproducible, and independent of the order
+    of the frames."""
     counts[C_LISTED] = 0
     # both loops deal their rows / blocks out over at least TASK_MIN iterations per thread
     # (kernels.stencil.first_chunk): a loop over fewer runs on one thread
@@ -277,8 +286,8 @@ def _integrate_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     for t in range(n_virtual_b):
         for n in range(first_chunk(t, n_blocks, n_virtual_b),
                        first_chunk(t + 1, n_blocks, n_virtual_b)):
-            _integrate_block(n, depth, rgb, prm, frame_list, tsdf, weight, color, slot_block,
-                             counts, with_color)
+            _integrate_block(n, sign, depth, rgb, prm, frame_list, tsdf, weight, color,
+                             slot_block, counts, with_color)
 
 
 @ti.kernel
@@ -292,14 +301,22 @@ def _copy_rows(src: ti.types.ndarray(), dst: ti.types.ndarray(), n: ti.i32):
 # -- the volume ------------------------------------------------------------------------------
 
 class SparseTSDF:
-    """A sparse TSDF volume with projective weighted-average integration.
+    """A sparse TSDF volume with projective averaging, kept as integer sums.
 
     Args:
         voxel_size: voxel edge, metres.
-        trunc_m: truncation ``tau_b``, metres; the stored value is ``tsdf = min(1, sdf / tau_b)``
-            (dimensionless, in [-1, 1]) for voxels with ``sdf >= -tau_b``.
-        max_weight: cap of the running weight (each observation adds 1).
-        with_color: also keep a weighted-average RGB per voxel.
+        trunc_m: truncation ``tau_b``, metres; each observation is ``min(1, sdf / tau_b)``
+            (dimensionless, in [-1, 1]) for voxels with ``sdf >= -tau_b``, and a voxel's TSDF is
+            the mean of its observations.
+        max_weight: cap of the *exported* weight (each observation counts 1). The mean itself is
+            never capped: a capped running average cannot give a frame back exactly.
+        with_color: also keep the mean RGB per voxel (over the frames that had colour).
+
+    Storage: per voxel the sum of the observations in fixed point (int64, 2^20 per tau_b) and
+    their count (int32) [and, with colour, int32 sums of R, G, B and the count of coloured
+    observations]: 12 bytes a voxel (20 with colour). Integer sums make integration
+    order-independent and :meth:`integrate` with ``sign=-1`` subtract a frame exactly
+    (issue 19: pose updates without re-fusing).
 
     ``ti.init`` must have been called before construction. All volumes of a program share the
     compiled kernels; constructing one costs no compilation.
@@ -334,9 +351,9 @@ class SparseTSDF:
         while cap < min_blocks:
             cap *= 2
         n = cap * BLOCK_VOXELS
-        new = {"tsdf": ti.ndarray(ti.f32, shape=(n,)), "weight": ti.ndarray(ti.f32, shape=(n,)),
+        new = {"tsdf": ti.ndarray(ti.i64, shape=(n,)), "weight": ti.ndarray(ti.i32, shape=(n,)),
                "slot_block": ti.ndarray(ti.i32, shape=(cap, 3)),
-               "rgb": ti.ndarray(ti.f32, shape=(n if self.with_color else 1, 3))}
+               "rgb": ti.ndarray(ti.i32, shape=(n if self.with_color else 1, 4))}
         used = int(self.counts[C_SLOTS])
         for name, arr in new.items():
             old = getattr(self, name)
@@ -361,13 +378,13 @@ class SparseTSDF:
         prm[P_M:P_M + 9] = (R_WC @ K_inv / self.block_size_m).ravel()
         prm[P_O:P_O + 3] = t_WC / self.block_size_m
         prm[P_TRUNC] = self.trunc_m
-        prm[P_MAXW] = self.max_weight
+        prm[P_SCALE] = TSDF_ONE / self.trunc_m
         prm[P_STEP] = 0.5
         return prm
 
     def integrate(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
-                  rgb=None, activation_stride: int = 1) -> int:
-        """Fuse one frame; return the number of voxel updates it made.
+                  rgb=None, activation_stride: int = 1, sign: int = 1) -> int:
+        """Fuse one frame (``sign=-1``: remove it); return the number of voxel updates it made.
 
         Args:
             depth_m: (H, W) float32 C-contiguous depth in metres, invalid pixels 0.
@@ -375,14 +392,17 @@ class SparseTSDF:
             T_W_C: (4, 4) camera-to-world pose.
             rgb: (H, W, 3) uint8 C-contiguous colour registered to the depth, used when the
                 volume was built ``with_color``. A colour volume given no ``rgb`` updates only
-                tsdf and weight for this frame; the colour running average then divides by a
-                weight that includes this colourless observation (the old colour keeps a larger
-                share than 1/W exactly).
+                tsdf and weight for this frame; the colour stays the mean of the coloured ones.
             activation_stride: activate blocks from every n-th pixel in u and v (1 = all pixels).
-        Inputs are trusted (validated by the caller).
+            sign: +1 adds the frame; -1 subtracts a frame added before with the same depth,
+                colour, K, pose and stride, exactly (the volume is then bitwise what it would be
+                without that frame; its blocks stay allocated, their emptied voxels unexported).
+        Inputs are trusted (validated by the caller; subtracting a frame never added corrupts
+        the volume).
         """
         use_color = self.with_color and rgb is not None
         prm = self._frame_params(K, T_W_C)
+        prm[P_RGB] = 1.0 if use_color else 0.0
         counts = self.counts
         before = int(counts[C_UPDATES])
         out_before = int(counts[C_OUT])
@@ -392,7 +412,7 @@ class SparseTSDF:
             self.frame_id += 1
             counts[C_OUT] = out_before  # a repeated listing must not count its samples twice
             _integrate_frame(depth_m, rgb_arr, prm, int(activation_stride), self.frame_id,
-                             self.volume_id, m.slot, m.stamp, self._cache, counts,
+                             int(sign), self.volume_id, m.slot, m.stamp, self._cache, counts,
                              self.frame_list, self.tsdf, self.weight, self.rgb, self.slot_block,
                              use_color)
             n_blocks, n_slots = int(counts[C_LISTED]), int(counts[C_SLOTS])
@@ -421,21 +441,26 @@ class SparseTSDF:
     def export(self) -> dict:
         """All observed voxels (weight > 0), sorted by (i, j, k):
         ``ijk`` (N, 3) int32, ``tsdf`` (N,) float32 in metres (clamped to [-tau_b, tau_b]),
-        ``weight`` (N,) float32, and ``rgb`` (N, 3) float32 0..255 if the volume has colour."""
+        ``weight`` (N,) float32 (the number of observations, capped at ``max_weight``), and
+        ``rgb`` (N, 3) float32 0..255 if the volume has colour (0 where no observation had
+        colour). Values are the integer sums divided in float64, then rounded to float32."""
         n_slots = int(self.counts[C_SLOTS])
         nv = n_slots * BLOCK_VOXELS
-        weight = self.weight.to_numpy()[:nv]
-        flat = np.flatnonzero(weight > 0)
+        count = self.weight.to_numpy()[:nv]
+        flat = np.flatnonzero(count > 0)
         slot, t = flat >> 9, flat & (BLOCK_VOXELS - 1)
         ijk = (self.slot_block.to_numpy()[:n_slots].astype(np.int64)[slot] * BLOCK
                + np.stack([t >> 6, (t >> 3) & 7, t & 7], axis=1))
         order = _lex_order(ijk)
         flat = flat[order]
+        n = count[flat].astype(np.float64)
+        mean = self.tsdf.to_numpy()[:nv][flat] / (n * TSDF_ONE)
         out = {"ijk": ijk[order].astype(np.int32),
-               "tsdf": self.tsdf.to_numpy()[flat] * np.float32(self.trunc_m),
-               "weight": weight[flat]}
+               "tsdf": (mean * self.trunc_m).astype(np.float32),
+               "weight": np.minimum(n, self.max_weight).astype(np.float32)}
         if self.with_color:
-            out["rgb"] = self.rgb.to_numpy()[flat]
+            sums = self.rgb.to_numpy()[:nv][flat].astype(np.float64)
+            out["rgb"] = (sums[:, :3] / np.maximum(sums[:, 3:], 1)).astype(np.float32)
         return out
 
     def blocks(self) -> np.ndarray:

@@ -59,8 +59,11 @@ class TSDFConfig:
     ``|sdf| < alpha * tau`` exists in it (paper: alpha in [1, 3])."""
 
     max_weight: float = 10000.0
-    """Cap of the per-voxel running weight (each observation adds 1). The default is voxblox's and
-    is effectively no cap; a small cap (e.g. 50) makes the TSDF forget old frames."""
+    """Cap of the per-voxel weight the TSDF reports (each observation counts 1), which the
+    meshing threshold ``mesh.min_weight`` and the prior's anchors read. The TSDF itself is the
+    exact mean of all its observations, kept as integer sums, so that a frame can be subtracted
+    exactly (``Reconstructor.update_poses`` / ``remove``): unlike a capped running average it
+    does not forget old frames; remove them instead. The default is voxblox's."""
 
     integrate_rgb: bool = False
     """Also fuse RGB into per-voxel colour (off by default: it costs time and memory)."""
@@ -98,7 +101,8 @@ class TSDFVolume:
     Args:
         voxel_size_m: voxel edge, metres (voxel ``ijk`` has centre ``(ijk + 0.5) * voxel_size_m``).
         trunc_m: truncation of the TSDF, metres (at least one voxel).
-        max_weight: running-weight cap; each observation adds 1.
+        max_weight: cap of the exported weight (each observation counts 1; the TSDF is the exact
+            mean of all observations, kept as integer sums so frames can be removed).
         integrate_rgb: also average per-voxel colour from ``rgb`` images.
         depth_max_m: depth beyond this is ignored (also sets the activation stride).
         arch: Taichi backend used if Taichi is not initialised yet.
@@ -188,6 +192,30 @@ class TSDFVolume:
         if self._vol.stats()["out_of_range_samples"] > out_before:
             self._check_in_map(depth, K, T_L_C, name)
         return updates
+
+    def remove(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
+               rgb: np.ndarray | None = None, name: str = "frame") -> int:
+        """Subtract a frame :meth:`integrate` added before with the same ``depth_m``, ``K``,
+        ``T_W_C`` (and ``rgb``); return the number of voxel updates removed. The volume is then
+        bitwise what integrating every other frame gives (the sums are integers; the grid's
+        :attr:`origin` stays where the first frame put it). Subtracting a frame that was never
+        added corrupts the volume: :class:`bftaichi.Reconstructor` keeps the frames and is the
+        safe way (``update_poses``, ``remove``)."""
+        if self.n_frames == 0:
+            raise BftaichiError(f"{name}: the volume is empty, there is no frame to remove")
+        depth = np.ascontiguousarray(np.asarray(depth_m, np.float32))
+        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.depth_max_m)
+        depth = np.ascontiguousarray(np.where(valid, depth, np.float32(0)))
+        if rgb is not None and self.integrate_rgb:
+            rgb = np.ascontiguousarray(rgb)
+        T_L_C = pose_in_local(check_pose(T_W_C, name), self.origin)
+        removed = self._vol.integrate(depth, check_K(K, name), T_L_C, rgb=rgb,
+                                      activation_stride=self._stride, sign=-1)
+        self.n_frames -= 1
+        self.n_pixels -= int(valid.sum())
+        if removed == 0:
+            self.n_empty_frames -= 1
+        return removed
 
     def _check_in_map(self, depth: np.ndarray, K: np.ndarray, T_L_C: np.ndarray,
                       name: str) -> None:
