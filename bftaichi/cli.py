@@ -17,6 +17,7 @@ from pathlib import Path
 import click
 
 from .errors import BftaichiError
+from .running.summary import print_summary as _print_summary
 
 ARCH = click.Choice(["cpu", "cuda", "vulkan", "metal", "gpu"])
 
@@ -42,72 +43,6 @@ def cli():
       bftaichi fuse DATA --voxel 0.01     # your own frames (7scenes or bfsdf layout)
       bftaichi eval out/default/tsdf_mesh.ply gt.ply
     """
-
-
-#: Metrics of the default (compact) summary; --verbose shows every metric.
-_SUMMARY_KEYS = ("chamfer_l2", "accuracy_m", "completeness_m")
-
-
-def _print_summary(out: Path, report: dict, verbose: bool = False) -> None:
-    """One screen about the run just made in ``out``, from the report it returned (what it
-    wrote as report.json; not read back)."""
-    from .evaluation.metrics import format_table
-
-    c, s = report["counts"], report["seconds"]
-    click.echo(f"scene {report['scene']}: {c['frames']} frames, {c['pixels_used']:,} depth pixels, "
-               f"{c['observed_voxels']:,} observed voxels in {c['blocks']:,} blocks")
-    fps = c["frames"] / s["tsdf"] if s.get("tsdf") else float("nan")
-    click.echo(f"time: total {s['total']:.2f} s (TSDF {s['tsdf']:.2f} s = {fps:.0f} frames/s, "
-               f"mesh {s['mesh']:.2f} s, reading frames {s['read_frames']:.2f} s)")
-    if verbose:
-        click.echo("seconds per stage: " + ", ".join(f"{k} {v:.2f}" for k, v in s.items()))
-    click.echo(f"tsdf_mesh.ply: {c['tsdf_mesh_vertices']:,} vertices, {c['tsdf_mesh_faces']:,} faces")
-    if report.get("solver"):
-        m, v = report["solver"]["map"], report["solver"]["variance"]
-        state = "converged" if m["converged"] else "NOT CONVERGED"
-        click.echo(f"mesh.ply: {c['mesh_vertices']:,} vertices, {c['mesh_faces']:,} faces; "
-                   f"band {c['band_voxels']:,} voxels; MAP PCG {state} in {m['iterations']} "
-                   f"iterations (relative residual {m['relative_residual']:.1e}); "
-                   f"variance from {v['n_probes']} probes ({s['posterior']:.2f} s)")
-        if verbose:
-            sub = report["solver"]["seconds"]
-            click.echo("posterior seconds: " + ", ".join(f"{k} {x:.2f}" for k, x in sub.items()))
-            obs = report["solver"]["observations"]
-            click.echo("observations: " + ", ".join(f"{k} {x:,}" for k, x in obs.items()
-                                                    if isinstance(x, int)))
-        if not m["converged"]:
-            click.echo("warning: the MAP solve did not converge; mesh.ply is written but flagged "
-                       "in report.json (raise solver.maxiter or check the scene)", err=True)
-    if c["empty_frames"]:
-        click.echo(f"warning: {c['empty_frames']} of {c['frames']} frames observed no voxel; if that "
-                   "is unexpected, check that poses are T_W_C (camera-to-world), not T_C_W, and the "
-                   "depth scale", err=True)
-    if report["metrics"]:
-        click.echo("metrics vs ground truth:")
-        keys = None
-        if not verbose:
-            keys = [k for k in next(iter(report["metrics"].values()))
-                    if k in _SUMMARY_KEYS or k.startswith("fscore@")]
-        click.echo(format_table(report["metrics"], keys))
-        u = report.get("uncertainty")
-        if u:
-            click.echo(f"vertex sigma vs true error ({u['n']:,} vertices of mesh.ply): "
-                       f"coverage of |e| <= 1/2/3 sigma {u['coverage@1sigma']:.1%} / "
-                       f"{u['coverage@2sigma']:.1%} / {u['coverage@3sigma']:.1%} (Gaussian "
-                       f"68.3 / 95.4 / 99.7 %), NLL minus the best constant sigma's "
-                       f"{u['nll_vs_constant']:+.2f} nats (below 0: informative), "
-                       f"Spearman {u['spearman']:.2f}")
-    else:
-        click.echo("no ground-truth mesh: geometry metrics skipped")
-    if report.get("nbv"):
-        b = report["nbv"]["best"]
-        eye = ", ".join(f"{x:.3f}" for x in (row[3] for row in b["pose"][:3]))
-        click.echo(f"next-best view: candidate {b['index']} of {report['nbv']['n_candidates']} "
-                   f"at ({eye}), utility {b['utility']:.3e} m^2 (nbv.json)")
-    if (out / "preview.html").exists():
-        mb = (out / "preview.html").stat().st_size / 1e6
-        click.echo(f"preview.html ({mb:.1f} MB): open it in a browser, or `bftaichi view {out}`")
-    click.echo(f"outputs in {out}/")
 
 
 #: ``--strict`` of ``run`` and ``fuse`` (``run.strict``).
@@ -222,6 +157,43 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
     report = run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(Path(out), report, verbose)
+
+
+@cli.command()
+@click.argument("out_dir", type=click.Path(file_okay=False))
+@click.option("--poses", "poses", type=click.Path(), required=True,
+              help="New poses T_W_C: a folder of <frame name>.txt / .pose.txt 4x4 files, or a "
+              "text file with one pose per line (frame name and 16 numbers, row-major; or the 16 "
+              "numbers alone, one line per frame in order).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
+@click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
+def update(out_dir, poses, quiet, verbose):
+    """Move frames of a run to corrected poses (after a loop closure) without re-fusing.
+
+    OUT_DIR must come from `bftaichi run` or `fuse` with --set run.keep_state=true, which also
+    writes fusion_state.npz (the TSDF's integer sums, 24 bytes an observed voxel, and each
+    frame's pose). Only the frames whose pose changed are subtracted from the TSDF and added
+    again, exactly: the TSDF equals fusing every frame at its new pose. The posterior is then
+    solved again on all frames and every output is replaced together; report.json records the
+    frames that moved under "update".
+
+    \b
+    Example:
+      bftaichi fuse DATA --voxel 0.02 --out out/kitchen --set run.keep_state=true
+      bftaichi update out/kitchen --poses corrected_poses.txt
+    """
+    from .running.update import update_run
+
+    report = update_run(out_dir, poses, progress=not quiet)
+    if report is None:
+        if not quiet:
+            click.echo(f"no frame of {out_dir} has a new pose in {poses}: nothing to do")
+        return
+    if not quiet:
+        u = report["update"]
+        click.echo(f"moved {u['n_moved']} of {u['n_frames']} frames: "
+                   + ", ".join(u["moved"][:8]) + (" ..." if u["n_moved"] > 8 else ""))
+        _print_summary(Path(out_dir), report, verbose)
 
 
 def _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh) -> list[str]:

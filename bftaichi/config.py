@@ -413,6 +413,10 @@ class RunConfig:
     """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.running.viz``)
     at the end of a run."""
 
+    keep_state: bool = False
+    """Also write ``fusion_state.npz`` (the TSDF's integer sums, 24 bytes an observed voxel, and
+    each frame's name and pose), so ``bftaichi update`` can move frames without re-fusing."""
+
     memory_fraction: float = 0.8
     """Peak memory a run may take, as a fraction (0 to 1) of the available RAM
     (:mod:`bftaichi.running.resources`: a run whose estimate exceeds it stops before allocating,

@@ -291,6 +291,24 @@ def _integrate_frame(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
 
 
 @ti.kernel
+def _load_blocks(blocks: ti.types.ndarray(dtype=ti.i32, ndim=2), frame: ti.i32, vid: ti.i32,
+                 slot_map: ti.template(), stamp_map: ti.template(),
+                 cache: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                 counts: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                 frame_list: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                 slot_block: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+    """Allocate (or find) the map blocks ``blocks`` (n, 3) (block indices) and list them in
+    ``frame_list`` with their pool slot, as a frame's activation does."""
+    counts[C_LISTED] = 0
+    for n in range(blocks.shape[0]):
+        blk = ti.Vector([blocks[n, 0], blocks[n, 1], blocks[n, 2]]) + BLOCK_OFFSET
+        _touch(blk, vid, frame, slot_map, stamp_map, cache, counts, frame_list)
+    for n in range(ti.min(ti.cast(counts[C_LISTED], ti.i32), frame_list.shape[0])):
+        for c in ti.static(range(3)):
+            slot_block[frame_list[n, 3], c] = frame_list[n, c] - BLOCK_OFFSET
+
+
+@ti.kernel
 def _copy_rows(src: ti.types.ndarray(), dst: ti.types.ndarray(), n: ti.i32):
     """dst[i, ...] = src[i, ...] for i < n (used to grow the pool)."""
     for I in ti.grouped(src):
@@ -448,9 +466,7 @@ class SparseTSDF:
         nv = n_slots * BLOCK_VOXELS
         count = self.weight.to_numpy()[:nv]
         flat = np.flatnonzero(count > 0)
-        slot, t = flat >> 9, flat & (BLOCK_VOXELS - 1)
-        ijk = (self.slot_block.to_numpy()[:n_slots].astype(np.int64)[slot] * BLOCK
-               + np.stack([t >> 6, (t >> 3) & 7, t & 7], axis=1))
+        ijk = self._voxel_ijk(flat)
         order = _lex_order(ijk)
         flat = flat[order]
         n = count[flat].astype(np.float64)
@@ -463,6 +479,61 @@ class SparseTSDF:
             out["rgb"] = (sums[:, :3] / np.maximum(sums[:, 3:], 1)).astype(np.float32)
         return out
 
+    def state(self) -> dict:
+        """The integer sums of every observed voxel, sorted by (i, j, k): ``ijk`` (N, 3) int32,
+        ``tsdf_sum`` (N,) int64 (fixed point, :data:`TSDF_ONE` per tau_b), ``count`` (N,) int32
+        [, ``rgb_sum`` (N, 4) int32: R, G, B sums and the coloured count]. :meth:`load_state` of
+        a new volume with the same voxel size and truncation restores it exactly."""
+        nv = int(self.counts[C_SLOTS]) * BLOCK_VOXELS
+        count = self.weight.to_numpy()[:nv]
+        flat = np.flatnonzero(count > 0)
+        ijk = self._voxel_ijk(flat)
+        order = _lex_order(ijk)
+        flat = flat[order]
+        out = {"ijk": ijk[order].astype(np.int32), "tsdf_sum": self.tsdf.to_numpy()[:nv][flat],
+               "count": count[flat]}
+        if self.with_color:
+            out["rgb_sum"] = self.rgb.to_numpy()[:nv][flat]
+        return out
+
+    def load_state(self, state: dict) -> None:
+        """Set the voxels of :meth:`state` (into an empty volume); integration and removal then
+        go on as if its frames had been integrated here."""
+        if int(self.counts[C_SLOTS]):
+            raise RuntimeError("load_state needs an empty volume")
+        ijk = np.asarray(state["ijk"], np.int64)
+        if len(ijk) == 0:
+            return
+        blocks = np.unique(np.floor_divide(ijk, BLOCK), axis=0).astype(np.int32)
+        if len(blocks) > self.frame_list.shape[0]:
+            self.frame_list = ti.ndarray(ti.i32, shape=(len(blocks), 4))
+        self._grow_pool(len(blocks))
+        self.frame_id += 1
+        m = self._map
+        _load_blocks(np.ascontiguousarray(blocks), self.frame_id, self.volume_id, m.slot,
+                     m.stamp, self._cache, self.counts, self.frame_list, self.slot_block)
+        slot_of = self.frame_list.to_numpy()[:len(blocks)]
+        order = _lex_order(slot_of[:, :3] - BLOCK_OFFSET)  # the rows of `blocks`, sorted
+        slots = slot_of[order, 3].astype(np.int64)
+        b = np.searchsorted(_block_keys(blocks), _block_keys(np.floor_divide(ijk, BLOCK)))
+        local = ijk - np.floor_divide(ijk, BLOCK) * BLOCK
+        flat = slots[b] * BLOCK_VOXELS + (local[:, 0] * 64 + local[:, 1] * 8 + local[:, 2])
+        nv = self.pool_blocks * BLOCK_VOXELS
+        for name, key, dtype, shape in (("tsdf", "tsdf_sum", np.int64, (nv,)),
+                                        ("weight", "count", np.int32, (nv,)),
+                                        ("rgb", "rgb_sum", np.int32, (nv, 4))):
+            if name == "rgb" and not self.with_color:
+                continue
+            full = np.zeros(shape, dtype)
+            full[flat] = state[key]
+            getattr(self, name).from_numpy(full)
+
+    def _voxel_ijk(self, flat: np.ndarray) -> np.ndarray:
+        """(n, 3) int64 voxel indices of flat pool positions."""
+        slot, t = flat >> 9, flat & (BLOCK_VOXELS - 1)
+        return (self.slot_block.to_numpy()[:int(self.counts[C_SLOTS])].astype(np.int64)[slot]
+                * BLOCK + np.stack([t >> 6, (t >> 3) & 7, t & 7], axis=1))
+
     def blocks(self) -> np.ndarray:
         """Block indices (n, 3) int32 of every allocated block, in slot order."""
         return self.slot_block.to_numpy()[:int(self.counts[C_SLOTS])]
@@ -471,6 +542,12 @@ class SparseTSDF:
         """Allocated blocks, and activation samples that fell outside the index range."""
         return {"blocks": int(self.counts[C_SLOTS]),
                 "out_of_range_samples": int(self.counts[C_OUT])}
+
+
+def _block_keys(blocks: np.ndarray) -> np.ndarray:
+    """Sortable int64 keys of block indices (n, 3) within the map's range."""
+    b = np.asarray(blocks, np.int64) + BLOCK_OFFSET
+    return (b[:, 0] * BLOCKS_PER_AXIS + b[:, 1]) * BLOCKS_PER_AXIS + b[:, 2]
 
 
 def _lex_order(ijk: np.ndarray) -> np.ndarray:

@@ -25,6 +25,7 @@ import trimesh
 from .. import backend
 from ..config import Config, parse_slice, save_config
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
+from ..frame import clean_depth
 from ..geometry import mesh_in_local
 from ..io import ensure_out_dir, prepare_out_dir, write_json, write_mesh_ply, write_npz
 from ..posterior import mesh_attrs
@@ -116,7 +117,7 @@ class _Timer:
 
 #: Everything a run writes into its folder (files and the plots/ folder).
 RUN_OUTPUTS = ("tsdf_mesh.ply", "mesh.ply", "band.npz", "report.json", "config.toml",
-               "preview.html", "nbv.json", "evalviews.json", "plots")
+               "preview.html", "nbv.json", "evalviews.json", "plots", "fusion_state.npz")
 
 
 class SolverError(BftaichiError):
@@ -171,12 +172,13 @@ class _FrameReader:
 
 
 def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
-        progress: bool = True, frames=None) -> dict:
+        progress: bool = True, frames=None, update=None) -> dict:
     """Run the pipeline of ``cfg`` and write its outputs into ``out_dir``; return the report.
 
     ``frames``: a frame source to use instead of the one ``cfg.scene`` describes (a dataset
     or a subset of one, with ``len`` and indexing), e.g. the fused half of a held-out-view
-    evaluation.
+    evaluation. ``update``: a :class:`bftaichi.running.update.UpdatePlan`, whose saved TSDF
+    (with its moved frames re-fused) replaces integrating every frame (``bftaichi update``).
 
     Raises BftaichiError subclasses for bad input (naming the file, frame or key) and
     NoSurfaceError when no voxel was observed (then no mesh is written).
@@ -205,7 +207,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
         staging = folder.Staging(out)
         try:
             report = _run_stages(cfg, frames, gt, staging.dir, timer, t_start, progress, memory,
-                                 checks)
+                                 checks, update)
             timer.current = "commit"
             staging.commit(remove=RUN_OUTPUTS + ("failed_run.json",))
         except BaseException as e:
@@ -216,7 +218,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
 
 
 def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool,
-                memory: dict, checks):
+                memory: dict, checks, update=None):
     """The stages of :func:`run`, writing into the staging folder ``out``; ``checks``: what
     :func:`~bftaichi.plausibility.check_inputs` found."""
     with timer("init"):
@@ -224,15 +226,33 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
     recon = Reconstructor(cfg)
     reader = _FrameReader(progress)
     cameras = {"K": None, "image_size": None, "poses": []}  # for the preview
+    names, poses = [], []  # what fusion_state.npz keeps
     with timer("tsdf"):
-        for frame in reader(frames, "integrate"):  # step 1; the posterior re-reads the frames
-            recon.integrate(frame.depth_m, frame.K, frame.T_W_C, rgb=frame.rgb, name=frame.name,
-                            keep=False)
+        if update is not None:  # bftaichi update: the saved sums, the moved frames re-fused
+            s = cfg.scene
+            update.apply(recon, frames.frames,
+                         lambda d: clean_depth(d, s.depth_min_m, s.depth_max_m))
+            first = frames[update.moved[0]]
+            cameras.update(K=np.asarray(first.K).tolist(),
+                           image_size=[first.depth_m.shape[1], first.depth_m.shape[0]],
+                           poses=update.new.tolist())
+            names, poses = update.names, list(update.new)
+        for frame in (reader(frames, "integrate") if update is None else ()):  # step 1; the
+            recon.integrate(frame.depth_m, frame.K, frame.T_W_C, rgb=frame.rgb,  # posterior
+                            name=frame.name, keep=False)  # re-reads the frames
             if cameras["K"] is None:
                 cameras["K"] = np.asarray(frame.K).tolist()
                 cameras["image_size"] = [frame.depth_m.shape[1], frame.depth_m.shape[0]]
             cameras["poses"].append(np.asarray(frame.T_W_C).tolist())
+            names.append(frame.name)
+            poses.append(np.asarray(frame.T_W_C, np.float64))
     timer.seconds["tsdf"] = round(timer.seconds["tsdf"] - reader.wait_s, 4)
+    state_bytes = None
+    if cfg.run.keep_state:
+        from .update import STATE_FILE, save_state
+
+        with timer("state"):
+            state_bytes = save_state(out / STATE_FILE, recon.tsdf, names, poses)
     stats = recon.tsdf.stats()
     with timer("export"):
         voxels = recon.voxels
@@ -345,6 +365,9 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
         "uncertainty": uncertainty,
         "band_uncertainty": band_unc,
         "cameras": cameras,
+        **({"fusion_state": {"file": "fusion_state.npz", "bytes": state_bytes}}
+           if state_bytes is not None else {}),
+        **({"update": update.summary()} if update is not None else {}),
         "has_ground_truth": gt is not None,
         "memory": {"estimate": memory, "peak_rss": timer.rss.to_dict() if timer.rss else None},
         "machine": {"python": platform.python_version(), "arch": checks.arch,
