@@ -95,6 +95,16 @@ def test_the_readme_example_runs(tmp_path):
                                                                "band.npz"}
 
 
+def test_the_slam_example_runs_and_its_update_equals_re_fusing():
+    sets = [a for s in TINY_SCENE_SETS for a in ("--set", s)]
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "slam_integration.py"),
+                           *sets, "--drifted", "2"], capture_output=True, text=True,
+                          timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "update_poses moved 2 frames" in proc.stdout
+    assert "equals re-fusing all 6 frames bitwise: True" in proc.stdout
+
+
 def test_robust_curvature_prior_tends_to_the_gaussian_one_and_changes_the_mean(tiny):
     """``prior.curvature_scale``: with a huge scale every weight is ~1 and the reweighted MAP is
     the Gaussian prior's (to the solver's tolerance); at 0.25 voxel it lets go where the field

@@ -177,7 +177,7 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
 
     ``frames``: a frame source to use instead of the one ``cfg.scene`` describes (a dataset
     or a subset of one, with ``len`` and indexing), e.g. the fused half of a held-out-view
-    evaluation. ``update``: a :class:`bftaichi.running.update.UpdatePlan`, whose saved TSDF
+    evaluation. ``update``: a :class:`bftaichi.running.state.UpdatePlan`, whose saved TSDF
     (with its moved frames re-fused) replaces integrating every frame (``bftaichi update``).
 
     Raises BftaichiError subclasses for bad input (naming the file, frame or key) and
@@ -249,7 +249,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
     timer.seconds["tsdf"] = round(timer.seconds["tsdf"] - reader.wait_s, 4)
     state_bytes = None
     if cfg.run.keep_state:
-        from .update import STATE_FILE, save_state
+        from .state import STATE_FILE, save_state
 
         with timer("state"):
             state_bytes = save_state(out / STATE_FILE, recon.tsdf, names, poses)

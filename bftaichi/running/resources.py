@@ -282,15 +282,16 @@ def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: flo
     the earlier stages included). N = band voxels, M = observed voxels, ``chunk`` = bytes of
     one marching-cubes chunk."""
     N, M = n_band, n_obs
-    pool = pool_blocks * (BLOCK_VOXELS * 8 + 12)  # tsdf + weight f32, slot_block (3,) i32
+    pool = pool_blocks * (BLOCK_VOXELS * 12 + 12)  # tsdf sum i64, count i32, slot_block (3,) i32
     voxels = 20 * M  # export: ijk (3,) i32, tsdf, weight f32
     mesh = 36 * mesh_vertices  # vertices (3,) f32 + ~2 faces (3,) i32 per vertex
     out = {}
     # growing the pool copies it: the old (half) and the new pool exist at once
     out["tsdf"] = 1.5 * pool
-    # export: to_numpy copies of the pool's weight and tsdf, int64 index temporaries (flat
-    # index, slot, local, (M, 3) ijk, sort key and order: ~100 B per voxel), the result
-    out["export"] = pool + pool_blocks * BLOCK_VOXELS * 8 + 100 * M + voxels
+    # export: to_numpy copies of the pool's count and sums, int64 index temporaries (flat
+    # index, slot, local, (M, 3) ijk, sort key and order: ~100 B per voxel), the float64
+    # mean, the result
+    out["export"] = pool + pool_blocks * BLOCK_VOXELS * 12 + 108 * M + voxels
     # marching cubes: sort of the voxels, one chunk (meshing.py), the mesh
     out["mesh"] = pool + voxels + 60 * M + chunk + mesh
     persist = pool + voxels + mesh  # the TSDF volume, its export and mesh live on
