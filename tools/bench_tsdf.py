@@ -13,7 +13,8 @@ Fair comparison, same run, same preloaded frames:
   depth scale 1000, ``depth_max`` 6 m for both (our depth is cut at depth_max when loading).
 * block activation from every 4th pixel in u and v for both (Open3D's
   ``compute_unique_block_coordinates`` uses a fixed stride of 4; we pass
-  ``activation_stride=4``); blocks of 8^3 voxels; tsdf and weight float32; CPU.
+  ``activation_stride=4``); blocks of 8^3 voxels; CPU. Open3D keeps tsdf and weight in float32;
+  bftaichi keeps integer sums (int64 fixed-point sum, int32 count: exactly subtractable).
 * only integration is timed (frames preloaded: float32 metres for us, ``o3d.t.geometry.Image``
   uint16 for Open3D; per frame Open3D runs compute_unique_block_coordinates + integrate). Taichi
   kernels are compiled before timing (the compile cost is reported separately, below).
