@@ -23,8 +23,8 @@ Layout::
 * The voxels of the block in (0-based) slot ``s`` live at ``s * 512 + t`` of the dense *pool*,
   ``t = 64 a + 8 b + c`` for voxel ``8 b_ijk + (a, b, c)``. A block is thus two contiguous runs
   (tsdf 4 KB, weight 2 KB): the integration streams dense memory and looks the sparse map up
-  once per block and frame, never per voxel. The pool grows by doubling (one copy) when a frame allocates
-  more blocks than it holds; the sparse map never moves.
+  once per block and frame, never per voxel. The pool grows by doubling (one copy) when a frame
+  allocates more blocks than it holds; the sparse map never moves.
 * All volumes of a Taichi program share one block-map tree (one slice per volume) and the
   kernels are module-level functions whose inputs are arguments (voxel size, truncation and
   weight cap arrive in a per-frame parameter vector), so a new volume compiles nothing and
