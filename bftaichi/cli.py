@@ -17,6 +17,8 @@ from pathlib import Path
 import click
 
 from .errors import BftaichiError
+from .running.summary import print_ranking as _print_ranking
+from .running.summary import print_scan_summary as _print_scan_summary
 from .running.summary import print_summary as _print_summary
 
 ARCH = click.Choice(["cpu", "cuda", "vulkan", "metal", "gpu"])
@@ -285,21 +287,6 @@ def synth(scene, out, sets, quiet):
                    f"gt_mesh.ply to {path}/")
 
 
-def _print_ranking(result: dict, top: int = 5) -> None:
-    import numpy as np
-
-    st = result["settings"]
-    click.echo(f"{len(result['candidates'])} candidates at {st['radius_m']:.3f} m around "
-               f"({', '.join(f'{v:.3f}' for v in st['target'])}); seen cells {st['seen_cells']:,} "
-               f"of {st['cell_m'] * 1000:.1f} mm")
-    click.echo("rank  index  utility [m^2]  known      unknown    frontier cells  hits  camera at")
-    for c in result["candidates"][:top]:
-        eye = np.asarray(c["pose"])[:3, 3]
-        click.echo(f"{c['rank']:4d}  {c['index']:5d}  {c['utility']:.3e}      {c['known']:.3e}  "
-                   f"{c['unknown']:.3e}  {c['frontier_cells']:13,d}  {c['hit_fraction']:4.0%}  "
-                   f"({', '.join(f'{v:.3f}' for v in eye)})")
-
-
 @cli.command()
 @click.argument("out_dir", type=click.Path(file_okay=False))
 @click.option("--candidates", type=click.Choice(["sphere", "hemisphere", "ring", "file"]),
@@ -449,24 +436,6 @@ def scan(scene, out, policies, steps, n_candidates, sets, arch, overwrite, quiet
         _print_scan_summary(out)
 
 
-def _print_scan_summary(out: Path) -> None:
-    """One screen about a scan, built from ``out/scan.json``."""
-    report = json.loads((out / "scan.json").read_text())
-    click.echo(f"scan of {report['scene']}: {report['candidates']} candidates, {report['steps']} "
-               f"steps from {len(report['initial_draws'])} draws of the initial views "
-               f"({report['seconds']:.0f} s); mean ± std over the runs")
-    click.echo("policy                 AUC recall@5mm   views to 95 % (reached)  final recall@5mm"
-               "  AUC F@10mm  final comp. (mm)")
-    for policy, res in report["policies"].items():
-        s, sd, n = res["summary"], res["summary"]["std"], res["summary"]["n_runs"]
-        reach, got = s["views_to_recall5_0.95"], s["reached"]["views_to_recall5_0.95"]
-        click.echo(f"{policy + f' ({n} runs)':22s} {s['auc_recall5']:.4f} ± {sd['auc_recall5']:.4f}"
-                   f"   {f'{reach:.1f}' if reach else 'never':>6} ({got:4.0%})            "
-                   f"{s['final_recall5']:.3f}     {s['auc_f10']:.4f}      "
-                   f"{s['final_completeness_mm']:.2f}")
-    click.echo(f"outputs in {out}/ (scan.json, scan.png)")
-
-
 @cli.command()
 @click.argument("out_dir", type=click.Path(file_okay=False))
 @click.option("--html", "html_file", type=click.Path(dir_okay=False), default=None,
@@ -505,6 +474,46 @@ def view(out_dir, html_file, band, max_faces, timeout):
         return
     serve(out_dir, timeout_s=timeout, max_faces=max_faces, band=band,
           on_url=lambda url: click.echo(f"meshcat viewer of {out_dir}: {url}  (Ctrl-C to stop)"))
+
+
+@cli.command()
+@click.argument("manifest", type=click.Path(dir_okay=False))
+@click.option("--out", "-o", type=click.Path(file_okay=False), required=True,
+              help="Output folder: one sub-folder per run, and batch.json.")
+@click.option("--workers", type=int, default=None,
+              help="CPUs of the local Ray cluster, one run each [default: all cores].")
+@click.option("--address", default=None,
+              help="Join a running Ray cluster (e.g. ray://head:10001 or auto) instead.")
+@click.option("--resume", is_flag=True, help="Skip runs whose outputs are complete.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary table.")
+def batch(manifest, out, workers, address, resume, quiet):
+    """Run many scenes on Ray, one task per run (needs the "distributed" extra).
+
+    MANIFEST is a TOML file of [[run]] tables: scene (a scene file, relative to the manifest),
+    optional name (the output sub-folder; default the scene's name) and optional set (a list of
+    "section.key=value" overrides). Each run writes OUT/<name>/ exactly as `bftaichi run` would;
+    OUT/batch.json records each run's status, seconds, peak memory, worker and error. A failing
+    run does not stop the others; the exit code is 0 only if every run succeeded.
+
+    \b
+    Example (scenes.toml):
+      [[run]]
+      scene = "scenes/bunny.toml"
+      [[run]]
+      scene = "scenes/bunny.toml"
+      name = "bunny-far"
+      set = ["synthetic.cam_radius_m=1.2"]
+    \b
+      bftaichi batch scenes.toml --out out/batch --workers 2
+    """
+    from .running.batch import run_batch, summary_lines
+
+    result = run_batch(manifest, out, workers=workers, address=address, resume=resume,
+                       progress=not quiet)
+    if not quiet:
+        click.echo("\n".join(summary_lines(result)))
+        click.echo(f"wrote {Path(out) / 'batch.json'}")
+    return 0 if result["counts"]["failed"] == 0 else 1
 
 
 @cli.command(name="eval")
@@ -553,7 +562,7 @@ def main(argv=None) -> int:
     folder.command_line = " ".join(["bftaichi", *args])  # names a folder's lock holder
     try:
         with signals.handled(), _warnings_on_stderr():  # SIGTERM, SIGHUP: as Ctrl-C
-            cli.main(args=args, prog_name="bftaichi", standalone_mode=False)
+            rc = cli.main(args=args, prog_name="bftaichi", standalone_mode=False)
     except (click.exceptions.Abort, KeyboardInterrupt) as e:
         click.echo(signals.describe_interrupt(e), err=True)
         return signals.exit_code(e)
@@ -565,7 +574,7 @@ def main(argv=None) -> int:
             raise
         click.echo(f"error: {e}", err=True)
         return 2
-    return 0
+    return rc if isinstance(rc, int) else 0  # a command's own exit code (batch: 1 = a run failed)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,7 +1,9 @@
-"""The one-screen summary ``bftaichi run``, ``fuse`` and ``update`` print after a run."""
+"""What the commands print at the end: a run's summary (``run``, ``fuse``, ``update``), a
+ranking of next-best views (``nbv``), a scan (``scan``)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -70,3 +72,36 @@ def print_summary(out: Path, report: dict, verbose: bool = False) -> None:
         mb = (out / "preview.html").stat().st_size / 1e6
         click.echo(f"preview.html ({mb:.1f} MB): open it in a browser, or `bftaichi view {out}`")
     click.echo(f"outputs in {out}/")
+
+
+def print_ranking(result: dict, top: int = 5) -> None:
+    import numpy as np
+
+    st = result["settings"]
+    click.echo(f"{len(result['candidates'])} candidates at {st['radius_m']:.3f} m around "
+               f"({', '.join(f'{v:.3f}' for v in st['target'])}); seen cells {st['seen_cells']:,} "
+               f"of {st['cell_m'] * 1000:.1f} mm")
+    click.echo("rank  index  utility [m^2]  known      unknown    frontier cells  hits  camera at")
+    for c in result["candidates"][:top]:
+        eye = np.asarray(c["pose"])[:3, 3]
+        click.echo(f"{c['rank']:4d}  {c['index']:5d}  {c['utility']:.3e}      {c['known']:.3e}  "
+                   f"{c['unknown']:.3e}  {c['frontier_cells']:13,d}  {c['hit_fraction']:4.0%}  "
+                   f"({', '.join(f'{v:.3f}' for v in eye)})")
+
+
+def print_scan_summary(out: Path) -> None:
+    """One screen about a scan, built from ``out/scan.json``."""
+    report = json.loads((out / "scan.json").read_text())
+    click.echo(f"scan of {report['scene']}: {report['candidates']} candidates, {report['steps']} "
+               f"steps from {len(report['initial_draws'])} draws of the initial views "
+               f"({report['seconds']:.0f} s); mean ± std over the runs")
+    click.echo("policy                 AUC recall@5mm   views to 95 % (reached)  final recall@5mm"
+               "  AUC F@10mm  final comp. (mm)")
+    for policy, res in report["policies"].items():
+        s, sd, n = res["summary"], res["summary"]["std"], res["summary"]["n_runs"]
+        reach, got = s["views_to_recall5_0.95"], s["reached"]["views_to_recall5_0.95"]
+        click.echo(f"{policy + f' ({n} runs)':22s} {s['auc_recall5']:.4f} ± {sd['auc_recall5']:.4f}"
+                   f"   {f'{reach:.1f}' if reach else 'never':>6} ({got:4.0%})            "
+                   f"{s['final_recall5']:.3f}     {s['auc_f10']:.4f}      "
+                   f"{s['final_completeness_mm']:.2f}")
+    click.echo(f"outputs in {out}/ (scan.json, scan.png)")
