@@ -33,6 +33,7 @@ from .stages.integrate import TSDFConfig
 from .stages.observe import ObservationConfig
 from .stages.prior import PriorConfig
 from .stages.solve import SolverConfig
+from .running.settings import RunConfig
 from .stages.surface import MeshConfig
 
 __all__ = [
@@ -384,54 +385,6 @@ class NBVConfig:
         check_range("nbv.initial_views", self.initial_views, 1, 1000)
         check_range("nbv.random_seeds", self.random_seeds, 1, 100)
         check_range("nbv.initial_seeds", self.initial_seeds, 1, 100)
-
-
-@dataclass
-class RunConfig:
-    """``[run]``: how the run executes."""
-
-    arch: str = "cpu"
-    """Taichi backend: ``cpu`` (default; the product is CPU-first), ``cuda``, ``vulkan``, ``metal``."""
-
-    seed: int = 0
-    """Master seed of the run's random choices (synthetic noise has its own ``synthetic.seed``)."""
-
-    stages: str = "full"
-    """``full`` (TSDF bootstrap + probabilistic posterior: tsdf_mesh.ply and mesh.ply with sigma)
-    or ``tsdf_only`` (the bootstrap alone, e.g. as a fast baseline)."""
-
-    strict: bool = False
-    """Refuse (exit code 2) input failing a check of :mod:`bftaichi.plausibility` (else a warning)
-    and a MAP solve that did not converge (else ``report.json`` flags ``map_not_converged``)."""
-
-    plots: bool = True
-    """Write diagnostic PNGs into ``plots/`` at the end of a run (``bftaichi.running.plots``:
-    precision / recall and F-score against threshold, sigma histogram, calibration, PCG
-    residual; those without their inputs, e.g. without ground truth, are skipped)."""
-
-    preview: bool = True
-    """Write ``preview.html`` (a self-contained meshcat page of the result, ``bftaichi.running.viz``)
-    at the end of a run."""
-
-    keep_state: bool = False
-    """Also write ``fusion_state.npz`` (the TSDF's integer sums, 24 bytes an observed voxel, and
-    each frame's name and pose), so ``bftaichi update`` can move frames without re-fusing."""
-
-    memory_fraction: float = 0.8
-    """Peak memory a run may take, as a fraction (0 to 1) of the available RAM
-    (:mod:`bftaichi.running.resources`: a run whose estimate exceeds it stops before allocating,
-    naming a voxel size that fits). 0.8 leaves a fifth to the rest of the machine. Ignored when
-    ``memory_budget_gib`` is set."""
-
-    memory_budget_gib: float = 0.0
-    """Peak memory a run may take, GiB, whatever is available (0 = use ``memory_fraction``)."""
-
-    def check(self) -> None:
-        check_choice("run.arch", self.arch, ("cpu", "cuda", "vulkan", "metal", "gpu"))
-        check_choice("run.stages", self.stages, ("full", "tsdf_only"))
-        check_range("run.memory_fraction", self.memory_fraction, 0.0, 1.0, lo_open=True)
-        check_range("run.memory_budget_gib", self.memory_budget_gib, 0.0, 1e6)
-        check_range("run.seed", self.seed, 0, MAX_SEED)
 
 
 @dataclass

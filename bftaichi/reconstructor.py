@@ -180,18 +180,45 @@ class Reconstructor:
         read. Raises NoSurfaceError when no voxel was observed."""
         cfg, frames = self.config, self.frames if frames is None else frames
         frames = local_frames(frames, self.origin)
-        vs, tau, o = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m, cfg.observation
         if len(self.voxels["ijk"]) == 0:
             raise NoSurfaceError(f"no surface was observed in {self.tsdf.n_frames} frames: check "
                                  "the depth range, the depth scale and that poses are T_W_C")
         lap = _Lap()
+        if cfg.run.chunk_m > 0:
+            self.posterior = self._solve_chunked(frames, variance, frame_iter, lap)
+            return self.posterior
         band, x0 = build_band(self.voxels, cfg.tsdf.bootstrap_trunc_m)               # step 2
         lap.collect = len(band) >= _COLLECT_MIN
         lap("band")
-        noise = {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0}
-        if o.fit_noise:
-            noise = estimate_extra_noise(frames, band, o, vs, cfg.tsdf.bootstrap_trunc_m,
-                                         (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
+        part = self._solve_band(band, x0, frames, variance, frame_iter, lap)
+        self.posterior = Posterior(band=band, **part, **self._posterior_fields(),
+                                   seconds=lap.seconds)
+        return self.posterior
+
+    def _posterior_fields(self) -> dict:
+        cfg = self.config
+        return {"voxel_size": cfg.tsdf.voxel_size_m, "observation": cfg.observation,
+                "trunc_m": cfg.tsdf.trunc_m, "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m,
+                "origin": self.origin.copy()}
+
+    def _fit_noise(self, band, frames) -> dict:
+        """The frames' extra noise (``observation.fit_noise``) seen on ``band``."""
+        cfg, o = self.config, self.config.observation
+        if not o.fit_noise:
+            return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0}
+        return estimate_extra_noise(frames, band, o, cfg.tsdf.voxel_size_m,
+                                    cfg.tsdf.bootstrap_trunc_m,
+                                    (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
+
+    def _solve_band(self, band, x0, frames, variance: bool, frame_iter, lap,
+                    noise: dict | None = None) -> dict:
+        """Steps 3-6 on ``band`` (start ``x0``, warm-started from the last posterior) with the
+        frames' ``noise`` (default: fitted on ``band``): the Posterior's fields mean, var, cov,
+        noise, solver, variance and observations."""
+        cfg = self.config
+        vs, tau, o = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m, cfg.observation
+        if noise is None:
+            noise = self._fit_noise(band, frames)
         lap("noise")
         observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"],            # step 3
                                  noise["sigma_corr_m"])
@@ -225,15 +252,42 @@ class Reconstructor:
                     cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] * g * g[j] + b * b[j], 0)
             var_stats = dict(var_stats, local_noise=misfit)
             lap("misfit")
-        self.posterior = Posterior(
-            band=band, voxel_size=vs, mean=mean, var=np.asarray(var, np.float32),
-            cov=cov if variance else None,
-            observation=o, trunc_m=tau, bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,
-            sigma_extra_m=float(noise["sigma_extra_m"]),
-            sigma_corr_m=float(noise["sigma_corr_m"]), solver=map_stats,
-            variance=_plain(var_stats), observations=_plain(dict(counts, noise_fit=noise)),
-            seconds=lap.seconds, origin=self.origin.copy())
-        return self.posterior
+        return {"mean": mean, "var": np.asarray(var, np.float32),
+                "cov": cov if variance else None,
+                "sigma_extra_m": float(noise["sigma_extra_m"]),
+                "sigma_corr_m": float(noise["sigma_corr_m"]), "solver": map_stats,
+                "variance": _plain(var_stats),
+                "observations": _plain(dict(counts, noise_fit=noise))}
+
+    def _solve_chunked(self, frames, variance: bool, frame_iter, lap) -> Posterior:
+        """Steps 2-6 in spatial chunks (``run.chunk_m``, :mod:`.stages.chunks`): each chunk's
+        band (its core plus a halo of ``run.chunk_halo`` voxels) is solved on its own, with the
+        observations that fall in it; each voxel of the whole band takes the values of the
+        chunk whose core holds it."""
+        from .stages.chunks import chunk_plan, merge_stats
+
+        cfg = self.config
+        tau_b = cfg.tsdf.bootstrap_trunc_m
+        full, _ = build_band(self.voxels, tau_b)
+        lap("band")
+        plan = chunk_plan(full.ijk, cfg.run.chunk_m, cfg.tsdf.voxel_size_m, cfg.run.chunk_halo)
+        noise = self._fit_noise(full, frames)  # one noise model for the whole scene
+        lap("noise")
+        n = len(full)
+        out = {"mean": np.empty(n, np.float32), "var": np.empty(n, np.float32),
+               "cov": np.zeros((n, 3), np.float32) if variance else None}
+        parts = []
+        for chunk in plan.chunks:
+            band, x0 = build_band(chunk.select(self.voxels), tau_b)
+            lap("band")
+            part = self._solve_band(band, x0, frames, variance, frame_iter, lap, noise)
+            core, where = chunk.core_in(band.ijk, full.ijk)
+            for key in ("mean", "var", "cov"):
+                if out[key] is not None:
+                    out[key][where] = part[key][core]
+            parts.append(part)
+        return Posterior(band=full, **out, **merge_stats(parts, plan), **self._posterior_fields(),
+                         seconds=lap.seconds)
 
     def tsdf_mesh(self, *, local: bool = False):
         """Step 7 for the bootstrap: its mesh (cells whose 8 corners have weight >=
@@ -278,7 +332,7 @@ class _Lap:
 
             free_compile_arguments()
         t1 = time.perf_counter()
-        self.seconds[name] = round(t1 - self.t0, 4)
+        self.seconds[name] = round(self.seconds.get(name, 0.0) + t1 - self.t0, 4)  # chunks add
         self.t0 = t1
 
 
