@@ -280,7 +280,9 @@ class Reconstructor:
         for chunk in plan.chunks:
             band, x0 = build_band(chunk.select(self.voxels), tau_b)
             lap("band")
-            part = self._solve_band(band, x0, frames, variance, frame_iter, lap, noise)
+            seen_by = chunk.frames(frames, cfg.tsdf.voxel_size_m, 2 * cfg.tsdf.trunc_m,
+                                   cfg.scene.depth_max_m)
+            part = self._solve_band(band, x0, seen_by, variance, frame_iter, lap, noise)
             core, where = chunk.core_in(band.ijk, full.ijk)
             for key in ("mean", "var", "cov"):
                 if out[key] is not None:

@@ -47,6 +47,55 @@ class Chunk:
         return core, where
 
 
+    def frames(self, frames, voxel_size_m: float, reach_m: float, depth_max_m: float):
+        """The frames (local poses) whose view can reach this chunk's voxels: its box grown by
+        ``reach_m`` (the observation's reach along a ray) is not wholly behind the camera,
+        beyond ``depth_max_m`` or beside the image. A frame it drops has no sample in the
+        chunk, so dropping it changes nothing but the time."""
+        return _Visible(frames, self, voxel_size_m, reach_m, depth_max_m)
+
+
+class _Visible:
+    """A frame source filtered by :meth:`Chunk.frames` (``len`` and indexing, lazily)."""
+
+    def __init__(self, frames, chunk: Chunk, vs: float, reach: float, depth_max: float):
+        lo = (np.array(chunk.key) * chunk.side - chunk.halo - 1) * vs - reach
+        hi = ((np.array(chunk.key) + 1) * chunk.side + chunk.halo + 1) * vs + reach
+        self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                 for z in (lo[2], hi[2])])
+        self.source, self.depth_max = frames, depth_max + reach
+        self.keep: list[int] | None = None
+
+    def _sees(self, frame) -> bool:
+        T = np.asarray(frame.T_W_C, np.float64)
+        c = (self.corners - T[:3, 3]) @ T[:3, :3]  # corners in the camera frame
+        z = c[:, 2]
+        if np.all(z <= 0) or np.all(z > self.depth_max):
+            return False
+        if np.any(z <= 1e-6):  # the box straddles the camera plane: keep it
+            return True
+        K = np.asarray(frame.K, np.float64)
+        u = K[0, 0] * c[:, 0] / z + K[0, 2]
+        v = K[1, 1] * c[:, 1] / z + K[1, 2]
+        h, w = frame.depth_m.shape[:2]
+        return not (np.all(u < -0.5) or np.all(u > w - 0.5) or np.all(v < -0.5)
+                    or np.all(v > h - 0.5))
+
+    def _index(self) -> list[int]:
+        if self.keep is None:
+            self.keep = [i for i in range(len(self.source)) if self._sees(self.source[i])]
+        return self.keep
+
+    def __len__(self) -> int:
+        return len(self._index())
+
+    def __getitem__(self, i: int):
+        return self.source[self._index()[i]]
+
+    def __iter__(self):
+        return (self.source[i] for i in self._index())
+
+
 @dataclass(frozen=True)
 class ChunkPlan:
     chunks: list[Chunk]
