@@ -183,7 +183,7 @@ class Reconstructor:
         if len(self.voxels["ijk"]) == 0:
             raise NoSurfaceError(f"no surface was observed in {self.tsdf.n_frames} frames: check "
                                  "the depth range, the depth scale and that poses are T_W_C")
-        lap = _Lap()
+        lap = Lap()
         if cfg.run.chunk_m > 0:
             self.posterior = self._solve_chunked(frames, variance, frame_iter, lap)
             return self.posterior
@@ -203,91 +203,49 @@ class Reconstructor:
 
     def _fit_noise(self, band, frames) -> dict:
         """The frames' extra noise (``observation.fit_noise``) seen on ``band``."""
-        cfg, o = self.config, self.config.observation
-        if not o.fit_noise:
-            return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0}
-        return estimate_extra_noise(frames, band, o, cfg.tsdf.voxel_size_m,
-                                    cfg.tsdf.bootstrap_trunc_m,
-                                    (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
+        return fit_noise(self.config, band, frames)
 
-    def _solve_band(self, band, x0, frames, variance: bool, frame_iter, lap,
-                    noise: dict | None = None) -> dict:
-        """Steps 3-6 on ``band`` (start ``x0``, warm-started from the last posterior) with the
-        frames' ``noise`` (default: fitted on ``band``): the Posterior's fields mean, var, cov,
-        noise, solver, variance and observations."""
-        cfg = self.config
-        vs, tau, o = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m, cfg.observation
-        if noise is None:
-            noise = self._fit_noise(band, frames)
-        lap("noise")
-        observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"],            # step 3
-                                 noise["sigma_corr_m"])
-        S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
-                                    else frames, o.stride)
-        observer.release()  # the misfit pass below needs only its lookups
-        lap("observe")
-        system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
-        lap("prior")
+    def _solve_band(self, band, x0, frames, variance: bool, frame_iter, lap) -> dict:
+        """Steps 3-6 on ``band`` (start ``x0``, warm-started from the last posterior)."""
         if self.posterior is not None and len(self.posterior.ijk):
             x0 = self.posterior.warm_start(band.ijk, x0)
-        mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
-                                    voxel_size_m=vs, free=cfg.prior.free,
-                                    prior=cfg.prior)
-        lap("map")
-        var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
-                                                probes=variance)
-        lap("variance")
-        if o.local_noise:  # noise part scaled, model error b^2 (correlated) added
-            picked = FramePicks(frames, o.misfit_frames)
-            scale, b2, misfit = local_misfit(observer, frame_iter(picked, "misfit") if frame_iter
-                                             else picked, mean, var, band.nbr, o.stride)
-            misfit["frames"] = len(picked)
-            var = var * scale + b2
-            if variance:
-                from kernels.probes import FACE_PLUS
-
-                g, b = np.sqrt(scale), np.sqrt(b2)
-                for e, off in enumerate(FACE_PLUS):
-                    j = np.maximum(band.nbr[:, off], 0)
-                    cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] * g * g[j] + b * b[j], 0)
-            var_stats = dict(var_stats, local_noise=misfit)
-            lap("misfit")
-        return {"mean": mean, "var": np.asarray(var, np.float32),
-                "cov": cov if variance else None,
-                "sigma_extra_m": float(noise["sigma_extra_m"]),
-                "sigma_corr_m": float(noise["sigma_corr_m"]), "solver": map_stats,
-                "variance": _plain(var_stats),
-                "observations": _plain(dict(counts, noise_fit=noise))}
+        return solve_band(self.config, band, x0, frames, variance, frame_iter, lap)
 
     def _solve_chunked(self, frames, variance: bool, frame_iter, lap) -> Posterior:
         """Steps 2-6 in spatial chunks (``run.chunk_m``, :mod:`.stages.chunks`): each chunk's
         band (its core plus a halo of ``run.chunk_halo`` voxels) is solved on its own, with the
-        observations that fall in it; each voxel of the whole band takes the values of the
-        chunk whose core holds it."""
-        from .stages.chunks import chunk_plan, merge_stats
+        observations that fall in it, one after another or, under ``bftaichi batch``, as Ray
+        tasks (:func:`.stages.chunks.solve_chunks`); each voxel of the whole band takes the
+        values of the chunk whose core holds it."""
+        from .stages.chunks import (ChunkJob, chunk_plan, chunk_views, core_positions, merge_stats,
+                                     solve_chunks)
 
         cfg = self.config
-        tau_b = cfg.tsdf.bootstrap_trunc_m
-        full, _ = build_band(self.voxels, tau_b)
+        full, _ = build_band(self.voxels, cfg.tsdf.bootstrap_trunc_m)
         lap("band")
         plan = chunk_plan(full.ijk, cfg.run.chunk_m, cfg.tsdf.voxel_size_m, cfg.run.chunk_halo)
         noise = self._fit_noise(full, frames)  # one noise model for the whole scene
         lap("noise")
+        views = chunk_views(frames, plan, cfg.tsdf.voxel_size_m, 2 * cfg.tsdf.trunc_m,
+                            cfg.scene.depth_max_m)
+        lap("chunk_views")
         n = len(full)
         out = {"mean": np.empty(n, np.float32), "var": np.empty(n, np.float32),
                "cov": np.zeros((n, 3), np.float32) if variance else None}
+        prev = self.posterior if self.posterior is not None and len(self.posterior.ijk) else None
+        jobs = (ChunkJob(cfg, chunk, chunk.select(self.voxels), frames, views[c], noise,
+                         variance, chunk.select_warm(prev))
+                for c, chunk in enumerate(plan.chunks))
         parts = []
-        for chunk in plan.chunks:
-            band, x0 = build_band(chunk.select(self.voxels), tau_b)
-            lap("band")
-            seen_by = chunk.frames(frames, cfg.tsdf.voxel_size_m, 2 * cfg.tsdf.trunc_m,
-                                   cfg.scene.depth_max_m)
-            part = self._solve_band(band, x0, seen_by, variance, frame_iter, lap, noise)
-            core, where = chunk.core_in(band.ijk, full.ijk)
+        for part in solve_chunks(jobs, frame_iter):
+            where = core_positions(full.ijk, part.pop("core_ijk"), part["chunk"]["key"])
             for key in ("mean", "var", "cov"):
                 if out[key] is not None:
-                    out[key][where] = part[key][core]
-            parts.append(part)
+                    out[key][where] = part.pop(key)
+            for stage, sec in part.pop("seconds").items():
+                lap.seconds[stage] = round(lap.seconds.get(stage, 0.0) + sec, 4)
+            parts.append(part)  # statistics only: the arrays are stitched and dropped
+        lap.t0 = time.perf_counter()
         return Posterior(band=full, **out, **merge_stats(parts, plan), **self._posterior_fields(),
                          seconds=lap.seconds)
 
@@ -313,10 +271,68 @@ class Reconstructor:
         return out
 
 
+def fit_noise(cfg, band, frames) -> dict:
+    """The frames' extra noise (``observation.fit_noise``) seen on ``band``."""
+    o = cfg.observation
+    if not o.fit_noise:
+        return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0}
+    return estimate_extra_noise(frames, band, o, cfg.tsdf.voxel_size_m,
+                                cfg.tsdf.bootstrap_trunc_m,
+                                (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
+
+
+def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
+               noise: dict | None = None) -> dict:
+    """Steps 3-6 on ``band`` (PCG start ``x0``) with the frames' ``noise`` (default: fitted
+    on ``band``): the Posterior's fields mean, var, cov, noise, solver, variance and
+    observations. ``lap`` (a :class:`Lap`) times the sub-stages."""
+    vs, tau, o = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m, cfg.observation
+    if noise is None:
+        noise = fit_noise(cfg, band, frames)
+    lap("noise")
+    observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"],            # step 3
+                             noise["sigma_corr_m"])
+    S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
+                                else frames, o.stride)
+    observer.release()  # the misfit pass below needs only its lookups
+    lap("observe")
+    system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
+    lap("prior")
+    mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
+                                voxel_size_m=vs, free=cfg.prior.free,
+                                prior=cfg.prior)
+    lap("map")
+    var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
+                                            probes=variance)
+    lap("variance")
+    if o.local_noise:  # noise part scaled, model error b^2 (correlated) added
+        picked = FramePicks(frames, o.misfit_frames)
+        scale, b2, misfit = local_misfit(observer, frame_iter(picked, "misfit") if frame_iter
+                                         else picked, mean, var, band.nbr, o.stride)
+        misfit["frames"] = len(picked)
+        var = var * scale + b2
+        if variance:
+            from kernels.probes import FACE_PLUS
+
+            g, b = np.sqrt(scale), np.sqrt(b2)
+            for e, off in enumerate(FACE_PLUS):
+                j = np.maximum(band.nbr[:, off], 0)
+                cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] * g * g[j] + b * b[j], 0)
+        var_stats = dict(var_stats, local_noise=misfit)
+        lap("misfit")
+    return {"mean": mean, "var": np.asarray(var, np.float32),
+            "cov": cov if variance else None,
+            "sigma_extra_m": float(noise["sigma_extra_m"]),
+            "sigma_corr_m": float(noise["sigma_corr_m"]), "solver": map_stats,
+            "variance": _plain(var_stats),
+            "observations": _plain(dict(counts, noise_fit=noise))}
+
+
+
 _COLLECT_MIN = 100_000  # band voxels from which each solve sub-stage frees compile arguments
 
 
-class _Lap:
+class Lap:
     """Seconds of each sub-stage of :meth:`Reconstructor.solve`, in order. With ``collect``
     (bands of at least :data:`_COLLECT_MIN` voxels) each sub-stage ends with
     :func:`kernels.stencil.free_compile_arguments`, so its large temporaries (layout tables,

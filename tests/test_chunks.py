@@ -51,3 +51,30 @@ def test_chunked_solve_equals_the_monolithic_one(mono):
 def test_a_small_halo_shows_the_chunk_edges(mono):
     dm, _ = _differences(_solve(["run.chunk_m=0.32", "run.chunk_halo=1"]), mono)
     assert dm > 0.05
+
+
+def test_a_chunk_observes_only_its_window_and_gets_exactly_the_whole_frames_samples(monkeypatch):
+    """Each chunk observes its frames masked to the image of its box (plus a margin): the
+    posterior is bitwise the one of observing the whole frames."""
+    from bftaichi.stages import chunks
+
+    extra = ["synthetic.width=320", "synthetic.height=240", "synthetic.fx=262",
+             "synthetic.fy=262", "synthetic.cx=159.5", "synthetic.cy=119.5",
+             "synthetic.n_views=6", "run.chunk_m=0.16"]
+    seen = []
+    views = chunks.chunk_views
+
+    def record(*args, **kw):
+        out = views(*args, **kw)
+        seen.extend(w for per_chunk in out for _, w in per_chunk)
+        return out
+
+    monkeypatch.setattr(chunks, "chunk_views", record)
+    masked = _solve(extra)
+    windows = [w for w in seen if w is not None]
+    assert windows and all((w[1] - w[0]) * (w[3] - w[2]) < 320 * 240 for w in windows)
+    monkeypatch.setattr(chunks, "chunk_views", lambda *a, **k: [
+        [(i, None) for i, _ in per_chunk] for per_chunk in views(*a, **k)])
+    whole = _solve(extra)
+    for key in ("mean", "var", "cov"):
+        assert np.array_equal(getattr(masked, key), getattr(whole, key)), key

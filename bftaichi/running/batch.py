@@ -17,6 +17,10 @@ reported. ``DIR/batch.json`` records per run its status, seconds, peak memory, w
 error, and is rewritten after every run, so an interrupted batch leaves a true record; each
 run's own outputs are committed atomically by the pipeline, so Ctrl-C leaves every completed run
 intact. ``resume`` skips the runs whose outputs are complete.
+
+A run solved in spatial chunks (``run.chunk_m``) sends each chunk to Ray as a task of its own
+(:func:`bftaichi.stages.chunks.ray_chunks`): one large scene spreads over the cluster. A run's
+task waits for its chunks without holding its CPU (Ray lends it to the chunks).
 """
 
 from __future__ import annotations
@@ -122,11 +126,13 @@ def run_one(name: str, scene: str, sets: tuple[str, ...], out_root: str, cwd: st
             os.chdir(cwd)
         from .. import backend
         from ..config import load_config
+        from ..stages.chunks import ray_chunks
         from .pipeline import run
 
         cfg = load_config(scene, list(sets))
         backend.init(cfg.run.arch)  # once per worker process: a no-op for its later runs
-        report = run(cfg, Path(out_root) / name, overwrite=True, progress=False)
+        with ray_chunks():  # a chunked run (run.chunk_m) sends its chunks to Ray as tasks
+            report = run(cfg, Path(out_root) / name, overwrite=True, progress=False)
         peak = (report.get("memory") or {}).get("peak_rss") or {}
         record.update(status="ok", peak_bytes=peak.get("peak"))
     except BftaichiError as e:
