@@ -65,6 +65,64 @@ def test_check_memory_names_a_voxel_size_that_fits():
     assert ok["budget_bytes"] == est["peak_bytes"] * 2
 
 
+def _chunk_fit(voxel):
+    """A tiny scene and a budget that a whole-band solve exceeds and a chunked one fits."""
+    from bftaichi.running.chunking import chunk_sides
+    from bftaichi.running.resources import SceneSample, _model
+
+    cfg, frames = _tiny(voxel)
+    whole = estimate_memory(cfg, frames)
+    sample = SceneSample(frames, voxel, cfg.scene.depth_max_m)
+    chunked = min(_model(sample, voxel, cfg.tsdf.bootstrap_trunc_m, True, (side, 8))["peak_bytes"]
+                  for side in chunk_sides(sample, voxel))
+    assert chunked < whole["peak_bytes"]
+    return cfg, frames, whole, (chunked + whole["peak_bytes"]) // 2
+
+
+def test_check_memory_chooses_the_largest_chunk_size_that_fits():
+    from bftaichi.running.chunking import ChunkingWarning
+
+    cfg, frames, whole, budget = _chunk_fit(0.015)
+    with pytest.warns(ChunkingWarning, match="solving in chunks of"):
+        est = check_memory(cfg, frames, budget=budget)
+    chunk_m = est["chunk_m_chosen"]
+    assert est["peak_bytes"] <= budget < est["whole_band_peak_bytes"] == whole["peak_bytes"]
+    assert est["inputs"]["chunk_band_voxels"] < est["inputs"]["band_voxels"]
+    # the estimate of that chunk size is the one returned; every larger candidate exceeds it
+    cfg.run.chunk_m = chunk_m
+    assert estimate_memory(cfg, frames)["peak_bytes"] == est["peak_bytes"]
+    from bftaichi.running.chunking import chunk_sides
+    from bftaichi.running.resources import SceneSample
+
+    sides = chunk_sides(SceneSample(frames, 0.015, cfg.scene.depth_max_m), 0.015)
+    larger = [s for s in sides if s * 0.015 > chunk_m + 1e-9]
+    for side in larger:
+        cfg.run.chunk_m = side * 0.015
+        assert estimate_memory(cfg, frames)["peak_bytes"] > budget
+    # a user's own chunk size is estimated as chunked, not refused as a whole-band solve
+    assert check_memory(cfg, frames, budget=whole["peak_bytes"])["peak_bytes"] < whole["peak_bytes"]
+
+
+def test_a_run_over_budget_solves_in_chunks_and_says_so(tmp_path, capsys):
+    from bftaichi.cli import main
+
+    cfg, frames, whole, budget = _chunk_fit(0.03)
+    out = tmp_path / "out"
+    sets = [*TINY_SCENE_SETS, "run.plots=false", "run.preview=false",
+            f"run.memory_budget_gib={budget / GIB!r}"]
+    capsys.readouterr()
+    assert main(["run", "--out", str(out), "-q", *[a for s in sets for a in ("--set", s)]]) == 0
+    err = capsys.readouterr().err
+    assert "warning: estimated peak memory" in err and "solving in chunks of" in err
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    chosen = report["memory"]["estimate"]["chunk_m_chosen"]
+    assert report["config"]["run"]["chunk_m"] == chosen > 0
+    assert report["solver"]["map"]["chunks"]["n"] >= 2
+    assert (out / "mesh.ply").is_file()
+
+
 def test_check_memory_says_when_no_voxel_size_fits():
     cfg, frames = _tiny(0.03)
     with pytest.raises(ResourceError, match="no voxel size up to 1 m fits") as info:

@@ -111,7 +111,8 @@ def main(argv=None) -> int:
         row = {"halo": halo, "chunks": c["n"], "side_voxels": c["side_voxels"],
                "max_dmean_voxel": dm, "median_dsigma_rel": ds, "chamfer_voxel2": cd,
                "seconds": t, "seconds_monolithic": t_mono, "converged": post.solver["converged"],
-               "calibration": cal(mesh)}
+               "calibration": cal(mesh), "stage_seconds": post.seconds,
+               "per_chunk": c.get("per_chunk")}
         rows.append(row)
         print(f"halo {halo}: {c['n']} chunks of {c['side_voxels']} voxels, max |dmean| "
               f"{dm:.4f} voxel, median |dsigma|/sigma {100 * ds:.2f} %, Chamfer {cd:.2e} "
@@ -125,7 +126,12 @@ def main(argv=None) -> int:
                   f"{100 * u['coverage@3sigma']:.1f} %, NLL - const {u['nll_vs_constant']:+.3f}")
     if args.json:
         args.json.write_text(json.dumps({"rows": rows, "monolithic_calibration": mono_cal,
-                                         "seconds_monolithic": t_mono}, indent=1, default=float))
+                                         "seconds_monolithic": t_mono,
+                                         "stage_seconds_monolithic": mono.seconds,
+                                         "band_voxels": len(mono.ijk),
+                                         "frames": len(recon.frames), "voxel_size_m": vs,
+                                         "chunk_m": args.chunk_m},
+                                        indent=1, default=float))
     return 0
 
 

@@ -12,6 +12,8 @@ observed voxel's ``tsdf`` and ``weight``. Meshes are in world coordinates, ``ban
 
 from __future__ import annotations
 
+import dataclasses
+
 import os
 import platform
 import time
@@ -195,7 +197,10 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
     from .resources import PeakRSS, check_memory
 
     with timer("memory_check"):  # before the output folder: a refused run writes nothing
-        memory = check_memory(cfg, frames)
+        memory = check_memory(cfg, frames)  # may choose run.chunk_m to fit the budget
+    if memory.get("chunk_m_chosen"):
+        cfg = dataclasses.replace(cfg, run=dataclasses.replace(
+            cfg.run, chunk_m=memory["chunk_m_chosen"]))
     from ..plausibility import check_inputs
 
     with timer("checks"):  # also starts Taichi, and sets cfg.run.arch to the backend that runs

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from contextlib import contextmanager
 
 import numpy as np
@@ -26,6 +27,7 @@ from kernels.layout import block_key_steps as _block_steps
 from ..errors import BftaichiError
 from ..geometry import local_origin, points_in_local
 from ..geometry import check_field_of_view
+from .chunking import ChunkingWarning, choose_chunk, chunk_share
 
 __all__ = ["ResourceError", "PeakRSS", "estimate_memory", "memory_budget", "check_memory",
            "available_memory", "suggest_voxel_size"]
@@ -277,10 +279,12 @@ on both sides of the surface, one dilation layer each side; kernels/band.py)."""
 
 
 def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: float,
-                 band_blocks: float, mesh_vertices: float, chunk: float) -> dict[str, float]:
+                 band_blocks: float, mesh_vertices: float, chunk: float,
+                 n_chunk: float | None = None) -> dict[str, float]:
     """Bytes above :data:`BASE_BYTES` that each stage holds at its peak (persistent arrays of
     the earlier stages included). N = band voxels, M = observed voxels, ``chunk`` = bytes of
-    one marching-cubes chunk."""
+    one marching-cubes chunk; ``n_chunk``: band voxels of the largest spatial chunk
+    (``run.chunk_m``; None: one solve for the whole band)."""
     N, M = n_band, n_obs
     pool = pool_blocks * (BLOCK_VOXELS * 12 + 12)  # tsdf sum i64, count i32, slot_block (3,) i32
     voxels = 20 * M  # export: ijk (3,) i32, tsdf, weight f32
@@ -311,6 +315,13 @@ def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: flo
     # variance: K = 16 float32 probes: Z, U, and the padded B, X, R, P, AP blocks (64 B each)
     # plus the signs and einsum temporaries
     out["variance"] = persist + post + 630 * N
+    if n_chunk is not None:  # the whole band and the stitched mean, var, cov (20 B) stay; each
+        c = n_chunk          # chunk builds, observes and solves its own band as above
+        whole = band + 20 * N
+        post_c = 133 * c + 152 * c
+        out["observe"] = persist + whole + 133 * c + obs * c + 112 * c
+        out["map"] = persist + whole + post_c + 370 * c
+        out["variance"] = persist + whole + post_c + 630 * c
     # the posterior mesh: Posterior arrays (ijk, mean, var, tsdf, weight, core, S, nbr: 245 B)
     # and marching cubes over the band
     out["posterior_mesh"] = persist + 245 * N + 365 * N + chunk
@@ -329,8 +340,10 @@ def _pool_blocks(blocks: float) -> int:
     return cap
 
 
-def _model(sample: SceneSample, voxel_size_m: float, trunc_b_m: float, full: bool) -> dict:
-    """The estimate of :func:`estimate_memory` from a scene sample (see there)."""
+def _model(sample: SceneSample, voxel_size_m: float, trunc_b_m: float, full: bool,
+           chunking: tuple[int, int] | None = None) -> dict:
+    """The estimate of :func:`estimate_memory` from a scene sample (see there); ``chunking``:
+    ``(side, halo)`` voxels of a chunked solve."""
     c = sample.measure(voxel_size_m, trunc_b_m)
     v = voxel_size_m
     blocks = c["blocks"] * BLOCK_COVERAGE
@@ -342,8 +355,10 @@ def _model(sample: SceneSample, voxel_size_m: float, trunc_b_m: float, full: boo
     # scene smaller than that
     cells = np.minimum(np.asarray(sample.extent_m) / v + 3, 129)
     chunk = 20 * float(np.prod(cells))
+    n_chunk = (None if chunking is None
+               else n_band * chunk_share(sample, voxel_size_m, *chunking))
     stages = _stage_bytes(n_band, n_obs, pool, c["candidate_blocks"] * BLOCK_COVERAGE, blocks,
-                          mesh_vertices, chunk)
+                          mesh_vertices, chunk, n_chunk)
     if not full:
         stages = {k: stages[k] for k in ("tsdf", "export", "mesh")}
     stages = {k: int(BASE_BYTES + b) for k, b in stages.items()}
@@ -353,6 +368,7 @@ def _model(sample: SceneSample, voxel_size_m: float, trunc_b_m: float, full: boo
             "inputs": {"blocks": int(round(blocks)), "pool_blocks": pool,
                        "observed_voxels": int(round(n_obs)),
                        "band_voxels": int(round(n_band)) if full else 0,
+                       "chunk_band_voxels": None if n_chunk is None else int(round(n_chunk)),
                        "mesh_vertices": int(round(mesh_vertices)),
                        "area_m2": round(c["area_m2"], 3),
                        "frames_sampled": len(sample.picks), "pixel_stride": sample.stride}}
@@ -394,9 +410,18 @@ def estimate_memory(cfg, frames, *, sample: SceneSample | None = None) -> dict:
     if sample is None:
         sample = SceneSample(frames, cfg.tsdf.voxel_size_m, cfg.scene.depth_max_m)
     out = _model(sample, cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m,
-                 cfg.run.stages == "full")
+                 cfg.run.stages == "full", _chunk(cfg))
     out["seconds"] = round(time.perf_counter() - t0, 4)
     return out
+
+
+def _chunk(cfg) -> tuple[int, int] | None:
+    """``(side, halo)`` voxels of ``run.chunk_m`` (as :func:`~bftaichi.stages.chunks.chunk_plan`
+    rounds it), None for a whole-band solve."""
+    r = cfg.run
+    if r.chunk_m <= 0 or r.stages != "full":
+        return None
+    return BLOCK * max(1, int(round(r.chunk_m / (BLOCK * cfg.tsdf.voxel_size_m)))), r.chunk_halo
 
 
 # -- the budget ------------------------------------------------------------------------------
@@ -505,22 +530,41 @@ def suggest_voxel_size(cfg, frames, budget: int, *, sample: SceneSample | None =
 def check_memory(cfg, frames, *, budget: int | None = None) -> dict:
     """:func:`estimate_memory`, compared with :func:`memory_budget` (or ``budget`` bytes).
 
-    Returns the estimate with ``budget_bytes`` added (None: unknown, not checked). Raises
-    :class:`ResourceError` when the estimate exceeds the budget, with the estimate, the budget
-    and a voxel size that fits (:func:`suggest_voxel_size`)."""
+    Returns the estimate with ``budget_bytes`` added (None: unknown, not checked). When a
+    whole-band solve exceeds the budget and a chunked one fits, the estimate is the chunked
+    run's, with ``chunk_m_chosen`` (the largest chunk side that fits,
+    :func:`.chunking.choose_chunk`; the run then solves in chunks of it) and
+    ``whole_band_peak_bytes``, and a :class:`~.chunking.ChunkingWarning` says so. Raises
+    :class:`ResourceError` when nothing fits, with the estimate, the budget and a voxel size
+    that fits (:func:`suggest_voxel_size`)."""
     t0 = time.perf_counter()
     sample = SceneSample(frames, cfg.tsdf.voxel_size_m, cfg.scene.depth_max_m)
     est = estimate_memory(cfg, frames, sample=sample)
     if budget is None:
         budget = memory_budget(cfg)
     est["budget_bytes"] = budget
+    if (budget is not None and est["peak_bytes"] > budget and cfg.run.stages == "full"
+            and cfg.run.chunk_m <= 0):  # solve in chunks, if a chunk size fits
+        fit = choose_chunk(cfg, sample, budget, lambda side, halo: _model(
+            sample, cfg.tsdf.voxel_size_m, cfg.tsdf.bootstrap_trunc_m, True, (side, halo)))
+        if fit is not None:
+            chunk_m, chunked = fit
+            warnings.warn(ChunkingWarning(
+                f"estimated peak memory {_gib(est['peak_bytes'])} of one whole-band solve "
+                f"(stage {est['peak_stage']}) exceeds {_describe_budget(cfg, budget)}: solving "
+                f"in chunks of {chunk_m:g} m (run.chunk_m; estimated peak "
+                f"{_gib(chunked['peak_bytes'])}, stage {chunked['peak_stage']})"), stacklevel=2)
+            est = dict(chunked, budget_bytes=budget, chunk_m_chosen=chunk_m,
+                       whole_band_peak_bytes=est["peak_bytes"])
     if budget is not None and est["peak_bytes"] > budget:
         v = cfg.tsdf.voxel_size_m
         inp = est["inputs"]
         count = (f"{inp['band_voxels'] / 1e6:.2f} M band voxels" if inp["band_voxels"]
                  else f"{inp['observed_voxels'] / 1e6:.2f} M observed voxels")
         msg = (f"estimated peak memory {_gib(est['peak_bytes'])} (stage {est['peak_stage']}, "
-               f"{count}) exceeds {_describe_budget(cfg, budget)} at tsdf.voxel_size_m = {v:g}; ")
+               f"{count}) exceeds {_describe_budget(cfg, budget)} at tsdf.voxel_size_m = {v:g}"
+               + (", and no chunk size (run.chunk_m) fits either; "
+                  if cfg.run.stages == "full" and cfg.run.chunk_m <= 0 else "; "))
         fit = suggest_voxel_size(cfg, frames, budget, sample=sample, estimate=est)
         if fit is None:
             msg += "no voxel size up to 1 m fits. "

@@ -42,9 +42,10 @@ class RunConfig:
 
     memory_fraction: float = 0.8
     """Peak memory a run may take, as a fraction (0 to 1) of the available RAM
-    (:mod:`bftaichi.running.resources`: a run whose estimate exceeds it stops before allocating,
-    naming a voxel size that fits). 0.8 leaves a fifth to the rest of the machine. Ignored when
-    ``memory_budget_gib`` is set."""
+    (:mod:`bftaichi.running.resources`: a run whose estimate exceeds it solves the posterior in
+    the largest chunks that fit, saying so (``chunk_m``), or, when no chunk size fits, stops
+    before allocating, naming a voxel size that fits). 0.8 leaves a fifth to the rest of the
+    machine. Ignored when ``memory_budget_gib`` is set."""
 
     memory_budget_gib: float = 0.0
     """Peak memory a run may take, GiB, whatever is available (0 = use ``memory_fraction``)."""
@@ -54,7 +55,8 @@ class RunConfig:
     (0 = one solve for the whole band). Each chunk's band (its core plus ``chunk_halo`` voxels
     around it) is solved on its own with the observations that fall in it, and each voxel takes
     the values of the chunk whose core holds it, so a scene larger than memory needs memory for
-    one chunk at a time (:mod:`bftaichi.stages.chunks`)."""
+    one chunk's solve at a time (:mod:`bftaichi.stages.chunks`); under ``bftaichi batch`` the
+    chunks are Ray tasks. Left at 0, a run over its memory budget chooses a size itself."""
 
     chunk_halo: int = 8
     """Voxels of band around each chunk's core that its solve includes and discards, so that
