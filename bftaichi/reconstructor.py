@@ -226,8 +226,7 @@ class Reconstructor:
         plan = chunk_plan(full.ijk, cfg.run.chunk_m, cfg.tsdf.voxel_size_m, cfg.run.chunk_halo)
         noise = self._fit_noise(full, frames)  # one noise model for the whole scene
         lap("noise")
-        views = chunk_views(frames, plan, cfg.tsdf.voxel_size_m, 2 * cfg.tsdf.trunc_m,
-                            cfg.scene.depth_max_m)
+        views = chunk_views(frames, plan, cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m)
         lap("chunk_views")
         n = len(full)
         out = {"mean": np.empty(n, np.float32), "var": np.empty(n, np.float32),

@@ -56,14 +56,6 @@ class Chunk:
         m = np.all((posterior.ijk >= lo) & (posterior.ijk < hi), axis=1)
         return np.asarray(posterior.ijk[m]), np.asarray(posterior.mean[m])
 
-    def box(self, voxel_size_m: float, reach_m: float) -> np.ndarray:
-        """(8, 3) corners, local metres, of the box that holds every sample this chunk's band
-        can accept: core plus ``halo + 1`` voxels, grown by ``reach_m``."""
-        lo = (np.array(self.key) * self.side - self.halo - 1) * voxel_size_m - reach_m
-        hi = ((np.array(self.key) + 1) * self.side + self.halo + 1) * voxel_size_m + reach_m
-        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                         for z in (lo[2], hi[2])])
-
 
 MASK_MARGIN_PX = 16 * (1 + 2)
 """Pixels kept around the image of a chunk's box: what a pixel or super-pixel that can reach
@@ -73,44 +65,99 @@ leaves from its centre; so every block whose samples can land in the box, and ev
 reads, lies within 16 (1 + 2) pixels of the box's image."""
 
 
-def chunk_views(frames, plan, voxel_size_m: float, reach_m: float,
-                depth_max_m: float) -> list[list[tuple[int, tuple | None]]]:
-    """Per chunk of ``plan``, the frames (local poses) whose view can reach it, as ``(index,
-    window)``: ``window = (v0, v1, u0, u1)`` is the part of the image that can observe the
-    chunk (the image of its :meth:`Chunk.box` plus :data:`MASK_MARGIN_PX`), None for the whole
-    image (the box straddles the camera plane). A frame is left out when the box is wholly
-    behind the camera, beyond ``depth_max_m`` or beside the image. One pass over the frames,
-    each read once. Observing a frame masked to its window gives the chunk exactly the samples
-    of the whole frame (tests/test_chunks.py); it saves the time of the pixels outside."""
-    boxes = np.stack([c.box(voxel_size_m, reach_m) for c in plan.chunks])  # (C, 8, 3)
+def chunk_views(frames, plan, voxel_size_m: float,
+                trunc_m: float) -> list[list[tuple[int, tuple | None]]]:
+    """Per chunk of ``plan``, the frames (local poses) that observe it, as ``(index, window)``:
+    ``window = (v0, v1, u0, u1)`` is the part of the image that can observe the chunk, None
+    for the whole image. One pass over the frames, each read once.
+
+    A sample lies on its pixel's (or super-pixel's) ray within ``trunc_m |K^-1 (u, v, 1)|`` of
+    the measured surface point, and the chunk's band accepts it only inside the box of its core
+    plus ``halo + 1`` voxels. So a frame observes the chunk only through the pixels whose
+    surface point lies in that box grown by the truncation's reach: every valid pixel, and
+    the centre of every k x k block (k = 2..16) whose pixels are all valid at their mean depth
+    (the super-pixels, kernels/observe.py), is tested. The window is the bounding rectangle of
+    those pixels (a block: all its pixels) plus :data:`MASK_MARGIN_PX`, the neighbourhood the
+    normals read. Observing a frame masked to its window therefore gives the chunk exactly the
+    samples of the whole frame (tests/test_chunks.py); the frames and pixels left out save
+    their time. The points are binned into cells of one TSDF block before the boxes are tested,
+    which keeps the test a superset (cells that merely touch a box count)."""
+    side_m = plan.side * voxel_size_m
+    keys = {c.key: k for k, c in enumerate(plan.chunks)}
     views = [[] for _ in plan.chunks]
-    far = depth_max_m + reach_m
-    m = MASK_MARGIN_PX
+    cell = BLOCK * voxel_size_m
     for i in range(len(frames)):
         frame = frames[i]
+        depth = np.asarray(frame.depth_m, np.float32)
+        h, w = depth.shape[:2]
         T = np.asarray(frame.T_W_C, np.float64)
         K = np.asarray(frame.K, np.float64)
-        h, w = np.asarray(frame.depth_m).shape[:2]
-        c = (boxes - T[:3, 3]) @ T[:3, :3]  # corners in the camera frame
-        z = c[..., 2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        u = K[0, 0] * c[..., 0] / zs + K[0, 2]
-        v = K[1, 1] * c[..., 1] / zs + K[1, 2]
-        straddle = np.any(z <= 1e-6, axis=1)
-        out = (np.all(z <= 0, axis=1) | np.all(z > far, axis=1)
-               | (~straddle & (np.all(u < -0.5, axis=1) | np.all(u > w - 0.5, axis=1)
-                               | np.all(v < -0.5, axis=1) | np.all(v > h - 0.5, axis=1))))
-        for k in np.flatnonzero(~out):
-            if straddle[k]:
-                views[k].append((i, None))
-                continue
-            v0 = max(0, int(np.floor(v[k].min())) - m)
-            v1 = min(h, int(np.ceil(v[k].max())) + m + 1)
-            u0 = max(0, int(np.floor(u[k].min())) - m)
-            u1 = min(w, int(np.ceil(u[k].max())) + m + 1)
+        pts, rect = _surface_points(depth, K)
+        if not len(pts):
+            continue
+        corners = np.array([[(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], 1.0]
+                            for x in (-0.5, w - 0.5) for y in (-0.5, h - 0.5)])
+        reach = trunc_m * float(np.linalg.norm(corners, axis=1).max()) + 1e-3
+        grow = (plan.halo + 1) * voxel_size_m + reach  # the core's box grown by this
+        pts = pts @ T[:3, :3].T + T[:3, 3]
+        c = np.floor(pts / cell).astype(np.int64)
+        uniq, inv = np.unique(c, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        box = np.full((len(uniq), 4), [h, 0, w, 0], np.int64)  # v0, v1, u0, u1 per cell
+        np.minimum.at(box[:, 0], inv, rect[:, 0])
+        np.maximum.at(box[:, 1], inv, rect[:, 1])
+        np.minimum.at(box[:, 2], inv, rect[:, 2])
+        np.maximum.at(box[:, 3], inv, rect[:, 3])
+        lo = np.floor((uniq * cell - grow) / side_m).astype(np.int64)  # chunks whose grown
+        hi = np.floor(((uniq + 1) * cell + grow) / side_m).astype(np.int64)  # box meets it
+        found: dict[int, np.ndarray] = {}
+        for d in np.ndindex(*(int(x) + 1 for x in (hi - lo).max(axis=0))):
+            key = lo + np.array(d)
+            ok = np.all(key <= hi, axis=1)
+            for kk, bx in zip(map(tuple, key[ok]), box[ok]):
+                k = keys.get(kk)
+                if k is None:
+                    continue
+                r = found.get(k)
+                found[k] = bx.copy() if r is None else np.array(
+                    [min(r[0], bx[0]), max(r[1], bx[1]), min(r[2], bx[2]), max(r[3], bx[3])])
+        m = MASK_MARGIN_PX
+        for k in sorted(found):
+            v0, v1, u0, u1 = found[k]
+            v0, v1, u0, u1 = max(0, v0 - m), min(h, v1 + m + 1), max(0, u0 - m), min(w, u1 + m + 1)
             whole = v0 == 0 and u0 == 0 and v1 == h and u1 == w
-            views[k].append((i, None if whole else (v0, v1, u0, u1)))
+            views[k].append((i, None if whole else (int(v0), int(v1), int(u0), int(u1))))
     return views
+
+
+def _surface_points(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame surface points of every valid pixel and of the centre of every k x k block
+    (k = 2, 4, 8, 16) whose pixels are all valid, at their mean depth, with the pixel
+    rectangle (v0, v1, u0, u1; inclusive) each stands for."""
+    valid = np.isfinite(depth) & (depth > 0)
+    v, u = np.nonzero(valid)
+    pts = [_back_project(u.astype(np.float64), v.astype(np.float64),
+                         depth[v, u].astype(np.float64), K)]
+    rects = [np.stack([v, v, u, u], axis=1)]
+    h, w = depth.shape
+    for lv in range(1, 5):
+        k = 1 << lv
+        hb, wb = h // k, w // k
+        if hb == 0 or wb == 0:
+            break
+        blocks = np.where(valid, depth, 0)[:hb * k, :wb * k].reshape(hb, k, wb, k)
+        full = (blocks > 0).all(axis=(1, 3))
+        by, bx = np.nonzero(full)
+        if not len(by):
+            continue
+        mean = blocks.mean(axis=(1, 3), dtype=np.float64)[by, bx]
+        pts.append(_back_project(k * bx + (k - 1) / 2, k * by + (k - 1) / 2, mean, K))
+        rects.append(np.stack([k * by, k * by + k - 1, k * bx, k * bx + k - 1], axis=1))
+    return np.concatenate(pts), np.concatenate(rects)
+
+
+def _back_project(u, v, z, K) -> np.ndarray:
+    return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
 
 
 class ChunkFrames:
