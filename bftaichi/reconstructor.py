@@ -42,11 +42,7 @@ from .geometry import check_K, check_pose
 from .posterior import Posterior
 from .stages.band import build_band
 from .stages.integrate import TSDFVolume
-from .stages.observe import (FramePicks, estimate_extra_noise, local_misfit, make_observer,
-                             observe)
-from .stages.prior import add_prior
-from .stages.solve import solve_map
-from .stages.variance import estimate_variance
+from .stages.bandsolve import _COLLECT_MIN, Lap, fit_noise, solve_band
 
 __all__ = ["Reconstructor"]
 
@@ -268,92 +264,3 @@ class Reconstructor:
             if self.posterior is not None:
                 self.posterior._write(staging)
         return out
-
-
-def fit_noise(cfg, band, frames) -> dict:
-    """The frames' extra noise (``observation.fit_noise``) seen on ``band``."""
-    o = cfg.observation
-    if not o.fit_noise:
-        return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0}
-    return estimate_extra_noise(frames, band, o, cfg.tsdf.voxel_size_m,
-                                cfg.tsdf.bootstrap_trunc_m,
-                                (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
-
-
-def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
-               noise: dict | None = None) -> dict:
-    """Steps 3-6 on ``band`` (PCG start ``x0``) with the frames' ``noise`` (default: fitted
-    on ``band``): the Posterior's fields mean, var, cov, noise, solver, variance and
-    observations. ``lap`` (a :class:`Lap`) times the sub-stages."""
-    vs, tau, o = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m, cfg.observation
-    if noise is None:
-        noise = fit_noise(cfg, band, frames)
-    lap("noise")
-    observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"],            # step 3
-                             noise["sigma_corr_m"])
-    S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
-                                else frames, o.stride)
-    observer.release()  # the misfit pass below needs only its lookups
-    lap("observe")
-    system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
-    lap("prior")
-    mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
-                                voxel_size_m=vs, free=cfg.prior.free,
-                                prior=cfg.prior)
-    lap("map")
-    var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
-                                            probes=variance)
-    lap("variance")
-    if o.local_noise:  # noise part scaled, model error b^2 (correlated) added
-        picked = FramePicks(frames, o.misfit_frames)
-        scale, b2, misfit = local_misfit(observer, frame_iter(picked, "misfit") if frame_iter
-                                         else picked, mean, var, band.nbr, o.stride)
-        misfit["frames"] = len(picked)
-        var = var * scale + b2
-        if variance:
-            from kernels.probes import FACE_PLUS
-
-            g, b = np.sqrt(scale), np.sqrt(b2)
-            for e, off in enumerate(FACE_PLUS):
-                j = np.maximum(band.nbr[:, off], 0)
-                cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] * g * g[j] + b * b[j], 0)
-        var_stats = dict(var_stats, local_noise=misfit)
-        lap("misfit")
-    return {"mean": mean, "var": np.asarray(var, np.float32),
-            "cov": cov if variance else None,
-            "sigma_extra_m": float(noise["sigma_extra_m"]),
-            "sigma_corr_m": float(noise["sigma_corr_m"]), "solver": map_stats,
-            "variance": _plain(var_stats),
-            "observations": _plain(dict(counts, noise_fit=noise))}
-
-
-
-_COLLECT_MIN = 100_000  # band voxels from which each solve sub-stage frees compile arguments
-
-
-class Lap:
-    """Seconds of each sub-stage of :meth:`Reconstructor.solve`, in order. With ``collect``
-    (bands of at least :data:`_COLLECT_MIN` voxels) each sub-stage ends with
-    :func:`kernels.stencil.free_compile_arguments`, so its large temporaries (layout tables,
-    probe vectors) do not stay resident into the next (~90 MB at the probes on redkitchen at
-    2 cm); below that the ~0.06 s it costs is worth more (a scan solves every step)."""
-
-    def __init__(self):
-        self.seconds: dict[str, float] = {}
-        self.t0 = time.perf_counter()
-        self.collect = True
-
-    def __call__(self, name: str) -> None:
-        if self.collect:
-            from kernels.stencil import free_compile_arguments
-
-            free_compile_arguments()
-        t1 = time.perf_counter()
-        self.seconds[name] = round(self.seconds.get(name, 0.0) + t1 - self.t0, 4)  # chunks add
-        self.t0 = t1
-
-
-def _plain(d: dict) -> dict:
-    """JSON-ready copy: numpy scalars to Python, arrays to lists."""
-    return {k: v.tolist() if isinstance(v, np.ndarray) else v.item()
-            if isinstance(v, np.generic) else v for k, v in d.items()}

@@ -204,7 +204,7 @@ def run_chunk(job: ChunkJob, frames=None, frame_iter=None) -> dict:
     """One chunk's steps 2-6 (``frames``: default ``job.frames``): the values of its core
     voxels (``core_ijk``, ``mean``, ``var``, ``cov``), the solve's statistics, ``seconds`` per
     sub-stage and, in ``chunk``, its band voxels, frames seen and seconds."""
-    from ..reconstructor import _COLLECT_MIN, Lap, solve_band
+    from .bandsolve import _COLLECT_MIN, Lap, solve_band
     from .band import build_band
 
     cfg, chunk = job.config, job.chunk
