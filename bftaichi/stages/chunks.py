@@ -83,7 +83,7 @@ def chunk_views(frames, plan, voxel_size_m: float,
     their time. The points are binned into cells of one TSDF block before the boxes are tested,
     which keeps the test a superset (cells that merely touch a box count)."""
     side_m = plan.side * voxel_size_m
-    keys = {c.key: k for k, c in enumerate(plan.chunks)}
+    chunk_codes = _linear(np.array([c.key for c in plan.chunks], np.int64))  # ascending
     views = [[] for _ in plan.chunks]
     cell = BLOCK * voxel_size_m
     for i in range(len(frames)):
@@ -99,35 +99,46 @@ def chunk_views(frames, plan, voxel_size_m: float,
                             for x in (-0.5, w - 0.5) for y in (-0.5, h - 0.5)])
         reach = trunc_m * float(np.linalg.norm(corners, axis=1).max()) + 1e-3
         grow = (plan.halo + 1) * voxel_size_m + reach  # the core's box grown by this
-        pts = pts @ T[:3, :3].T + T[:3, 3]
-        c = np.floor(pts / cell).astype(np.int64)
-        uniq, inv = np.unique(c, axis=0, return_inverse=True)
-        inv = inv.ravel()
-        box = np.full((len(uniq), 4), [h, 0, w, 0], np.int64)  # v0, v1, u0, u1 per cell
-        np.minimum.at(box[:, 0], inv, rect[:, 0])
-        np.maximum.at(box[:, 1], inv, rect[:, 1])
-        np.minimum.at(box[:, 2], inv, rect[:, 2])
-        np.maximum.at(box[:, 3], inv, rect[:, 3])
+        R, t = T[:3, :3] / cell, T[:3, 3] / cell  # straight to cell units
+        c = np.floor(pts @ R.T + t).astype(np.int64)
+        code = _linear(c)
+        order = np.argsort(code)
+        sorted_code = code[order]
+        starts = np.flatnonzero(np.r_[True, sorted_code[1:] != sorted_code[:-1]])
+        uniq = c[order[starts]]
+        box = _group_rect(rect[order], starts)  # v0, v1, u0, u1 of each cell's pixels
         lo = np.floor((uniq * cell - grow) / side_m).astype(np.int64)  # chunks whose grown
         hi = np.floor(((uniq + 1) * cell + grow) / side_m).astype(np.int64)  # box meets it
-        found: dict[int, np.ndarray] = {}
+        hit_chunk, hit_box = [], []
         for d in np.ndindex(*(int(x) + 1 for x in (hi - lo).max(axis=0))):
             key = lo + np.array(d)
             ok = np.all(key <= hi, axis=1)
-            for kk, bx in zip(map(tuple, key[ok]), box[ok]):
-                k = keys.get(kk)
-                if k is None:
-                    continue
-                r = found.get(k)
-                found[k] = bx.copy() if r is None else np.array(
-                    [min(r[0], bx[0]), max(r[1], bx[1]), min(r[2], bx[2]), max(r[3], bx[3])])
+            pos = np.minimum(np.searchsorted(chunk_codes, _linear(key[ok])), len(chunk_codes) - 1)
+            hit = chunk_codes[pos] == _linear(key[ok])
+            hit_chunk.append(pos[hit])
+            hit_box.append(box[ok][hit])
+        hit_chunk, hit_box = np.concatenate(hit_chunk), np.concatenate(hit_box)
+        if not len(hit_chunk):
+            continue
+        order = np.argsort(hit_chunk, kind="stable")
+        starts = np.flatnonzero(np.r_[True, hit_chunk[order][1:] != hit_chunk[order][:-1]])
         m = MASK_MARGIN_PX
-        for k in sorted(found):
-            v0, v1, u0, u1 = found[k]
+        for k, (v0, v1, u0, u1) in zip(hit_chunk[order][starts].tolist(),
+                                       _group_rect(hit_box[order], starts).tolist()):
             v0, v1, u0, u1 = max(0, v0 - m), min(h, v1 + m + 1), max(0, u0 - m), min(w, u1 + m + 1)
             whole = v0 == 0 and u0 == 0 and v1 == h and u1 == w
-            views[k].append((i, None if whole else (int(v0), int(v1), int(u0), int(u1))))
+            views[k].append((i, None if whole else (v0, v1, u0, u1)))
     return views
+
+
+def _group_rect(r: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """The bounding rectangle (v0, v1, u0, u1) of each group of rows of ``r`` (sorted into
+    groups beginning at ``starts``)."""
+    if not len(r):
+        return np.zeros((0, 4), np.int64)
+    return np.stack([np.minimum.reduceat(r[:, 0], starts), np.maximum.reduceat(r[:, 1], starts),
+                     np.minimum.reduceat(r[:, 2], starts), np.maximum.reduceat(r[:, 3], starts)],
+                    axis=1)
 
 
 def _surface_points(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -138,7 +149,7 @@ def _surface_points(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.nd
     v, u = np.nonzero(valid)
     pts = [_back_project(u.astype(np.float64), v.astype(np.float64),
                          depth[v, u].astype(np.float64), K)]
-    rects = [np.stack([v, v, u, u], axis=1)]
+    rects = [np.stack([v, v, u, u], axis=1).astype(np.int32)]
     h, w = depth.shape
     for lv in range(1, 5):
         k = 1 << lv
@@ -152,7 +163,8 @@ def _surface_points(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.nd
             continue
         mean = blocks.mean(axis=(1, 3), dtype=np.float64)[by, bx]
         pts.append(_back_project(k * bx + (k - 1) / 2, k * by + (k - 1) / 2, mean, K))
-        rects.append(np.stack([k * by, k * by + k - 1, k * bx, k * bx + k - 1], axis=1))
+        rects.append(np.stack([k * by, k * by + k - 1, k * bx, k * bx + k - 1],
+                              axis=1).astype(np.int32))
     return np.concatenate(pts), np.concatenate(rects)
 
 
