@@ -121,6 +121,12 @@ def test_a_run_over_budget_solves_in_chunks_and_says_so(tmp_path, capsys):
     assert report["config"]["run"]["chunk_m"] == chosen > 0
     assert report["solver"]["map"]["chunks"]["n"] >= 2
     assert (out / "mesh.ply").is_file()
+    # the cost model reads such a report and reproduces the run it came from
+    r = subprocess.run([sys.executable, str(ROOT / "tools" / "chunk_cost_model.py"),
+                        str(out / "report.json"), "--floor-m2", "100", "--workers", "1", "4"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "predicted: 100 m^2 of floor" in r.stdout and "4 workers" in r.stdout
 
 
 def test_check_memory_says_when_no_voxel_size_fits():

@@ -69,7 +69,8 @@ def model(report: dict, floor_m2: float, surface_per_floor: float, workers: list
     coef, rms = fit_chunks(per[1:] if len(per) > 3 else per)  # the first chunk pays the JIT
     sec = report["seconds"]
     chunk_total = sum(p["seconds"] for p in per)
-    serial_posterior = sec["posterior"] - chunk_total
+    # the pipeline books the frames' reading apart (read_frames); the chunks' seconds hold it
+    serial_posterior = sec["posterior"] + sec.get("read_frames", 0.0) - chunk_total
     serial = {"tsdf": sec["tsdf"], "export": sec.get("export", 0.0), "mesh": sec.get("mesh", 0.0),
               "posterior (band, noise fit, chunk views, stitching)": serial_posterior,
               "metrics and outputs": sec.get("metrics", 0.0) + sec.get("write", 0.0)}
