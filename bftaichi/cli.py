@@ -166,7 +166,8 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
 @click.option("--poses", "poses", type=click.Path(), required=True,
               help="New poses T_W_C: a folder of <frame name>.txt / .pose.txt 4x4 files, or a "
               "text file with one pose per line (frame name and 16 numbers, row-major; or the 16 "
-              "numbers alone, one line per frame in order).")
+              "numbers alone, one line per frame in order), a TUM trajectory (timestamp tx ty "
+              "tz qx qy qz qw) or an Open3D .log.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Every metric, stage time and count.")
 def update(out_dir, poses, quiet, verbose):

@@ -111,3 +111,56 @@ def test_bad_updates_are_refused_and_change_nothing(data, capsys, tmp_path):
     assert main(["update", str(no_state), "--poses", str(good)]) == 2
     assert "run.keep_state=true" in capsys.readouterr().err
     assert {p.name: _digest(p) for p in run.iterdir() if p.is_file()} == before
+
+
+def _num(values):
+    return " ".join(f"{float(x):.17g}" for x in values)
+
+
+def _poses(n, seed=0):
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for q in Rotation.random(n, random_state=seed).as_quat():  # x y z w
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(q).as_matrix()
+        T[:3, 3] = rng.normal(size=3)
+        out.append((q, T))
+    return out
+
+
+def test_poses_in_the_tum_and_open3d_log_trajectory_formats(tmp_path):
+    """--poses reads the trajectories the loaders read: TUM lines (by frame name, or nearest in
+    time for frames named by timestamps) and an Open3D .log (one block per frame)."""
+    from bftaichi.errors import DataError
+    from bftaichi.running.state import read_poses
+
+    poses = _poses(3)
+    names = ["1305031102.175304", "1305031102.211214", "1305031102.243211"]
+    # named by the frames' names
+    tum = tmp_path / "named.txt"
+    tum.write_text("# timestamp tx ty tz qx qy qz qw\n" + "".join(
+        f"{n} {_num(T[:3, 3])} {_num(q)}\n"
+        for n, (q, T) in zip(names, poses)))
+    got = read_poses(tum, names)
+    for n, (_, T) in zip(names, poses):
+        assert np.allclose(got[n], T, atol=1e-9)
+    # by time: the ground truth runs at its own clock; the third frame has no pose near it
+    timed = tmp_path / "groundtruth.txt"
+    timed.write_text("".join(
+        f"{float(n) + d} {_num(T[:3, 3])} {_num(q)}\n"
+        for n, (q, T), d in zip(names, poses, (0.004, -0.01, 0.5))))
+    got = read_poses(timed, names)
+    assert sorted(got) == names[:2] and np.allclose(got[names[1]], poses[1][1], atol=1e-9)
+    with pytest.raises(DataError, match="not named by timestamps"):
+        read_poses(timed, ["frame-000000", "frame-000001", "frame-000002"])
+    # an Open3D .log
+    log = tmp_path / "traj.log"
+    log.write_text("".join(f"{i} {i} {i + 1}\n" + "\n".join(_num(r) for r in T)
+                           + "\n" for i, (_, T) in enumerate(poses)))
+    got = read_poses(log, names)
+    for n, (_, T) in zip(names, poses):
+        assert np.allclose(got[n], T, atol=1e-12)
+    with pytest.raises(DataError, match="3 poses for a run of 2 frames"):
+        read_poses(log, names[:2])

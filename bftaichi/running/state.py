@@ -90,7 +90,15 @@ def read_poses(path: str | Path, names: list[str]) -> dict[str, np.ndarray]:
     * a folder of per-frame files, each a 4x4 matrix (``<name>.txt`` or ``<name>.pose.txt``, the
       7-Scenes and folder layouts; frames without a file keep their pose); or
     * a text file with one pose per line: ``name`` and 16 numbers (row-major 4x4), or 16
-      numbers alone on exactly one line per frame, in the run's frame order.
+      numbers alone on exactly one line per frame, in the run's frame order (Replica's
+      ``traj.txt``);
+    * a TUM trajectory, ``timestamp tx ty tz qx qy qz qw`` per line (the ``tum`` format's
+      ``groundtruth.txt``): a line whose first field is a frame's name gives that frame's pose;
+      when none does and the frames are named by their timestamps (TUM's depth stems), each
+      frame takes the line nearest in time within 0.02 s (the ``tum`` loader's rule), and the
+      frames without one keep their pose;
+    * an Open3D ``.log`` trajectory (the ``redwood`` format): one block per frame of the run,
+      in its order.
 
     Every pose is checked (finite, rigid); errors name the file and line."""
     path = Path(path)
@@ -112,9 +120,13 @@ def read_poses(path: str | Path, names: list[str]) -> dict[str, np.ndarray]:
             raise DataError(f"--poses: no file in {path} is named after a frame of the run "
                             f"(e.g. {names[0]}.txt or {names[0]}.pose.txt)")
         return out
+    if path.suffix == ".log":
+        return _read_log_poses(path, names)
     rows = [(n, line.replace(",", " ").split()) for n, line in
             enumerate(path.read_text().splitlines(), 1)
             if line.strip() and not line.lstrip().startswith("#")]
+    if rows and all(len(tokens) == 8 for _, tokens in rows):
+        return _read_tum_poses(path, rows, names)
     unnamed = []
     for n, tokens in rows:
         named = len(tokens) == 17
@@ -141,4 +153,46 @@ def read_poses(path: str | Path, names: list[str]) -> dict[str, np.ndarray]:
         out = dict(zip(names, unnamed))
     if not out:
         raise DataError(f"{path}: no poses")
+    return out
+
+
+def _read_log_poses(path: Path, names: list[str]) -> dict[str, np.ndarray]:
+    """An Open3D ``.log`` trajectory, one block per frame of the run in its order."""
+    from ..formats.readers import pose_from_values
+    from ..formats.redwood import RedwoodDataset
+
+    blocks = RedwoodDataset._read_log(path)
+    if len(blocks) != len(names):
+        raise DataError(f"{path}: {len(blocks)} poses for a run of {len(names)} frames; an "
+                        ".log gives one per frame, in the run's order")
+    return {name: pose_from_values(values, f"{path}: lines {lineno}-{lineno + 4}")
+            for name, (_, lineno, values) in zip(names, blocks)}
+
+
+def _read_tum_poses(path: Path, rows: list, names: list[str]) -> dict[str, np.ndarray]:
+    """``timestamp|name tx ty tz qx qy qz qw`` lines (see :func:`read_poses`)."""
+    from ..formats.tum import _nearest, _quaternion_pose
+
+    def pose(n, tokens):
+        try:
+            values = np.array([float(v) for v in tokens[1:]])
+        except ValueError:
+            raise DataError(f"{path}:{n}: not 'timestamp tx ty tz qx qy qz qw'") from None
+        return _quaternion_pose(values, f"{path}:{n}")
+
+    known = set(names)
+    out = {tokens[0]: pose(n, tokens) for n, tokens in rows if tokens[0] in known}
+    if out:
+        return out
+    try:
+        stamps = np.array([float(name) for name in names])
+        times = np.array([float(tokens[0]) for _, tokens in rows])
+    except ValueError:
+        raise DataError(f"{path}: no line's first field is a frame name of the run (e.g. "
+                        f"{names[0]!r}), and the frames are not named by timestamps") from None
+    order = np.argsort(times, kind="stable")
+    pick, gap = _nearest(times[order], stamps)
+    out = {name: pose(*rows[order[k]]) for name, k, g in zip(names, pick, gap) if g <= 0.02}
+    if not out:
+        raise DataError(f"{path}: no pose within 0.02 s of a frame of the run")
     return out
