@@ -494,7 +494,8 @@ def batch(manifest, out, workers, address, resume, quiet):
     optional name (the output sub-folder; default the scene's name) and optional set (a list of
     "section.key=value" overrides). Each run writes OUT/<name>/ exactly as `bftaichi run` would;
     OUT/batch.json records each run's status, seconds, peak memory, worker and error. A failing
-    run does not stop the others; the exit code is 0 only if every run succeeded.
+    run does not stop the others; the exit code is 0 only if every run succeeded. A run set to
+    solve in spatial chunks (run.chunk_m) sends each chunk to Ray as a task of its own.
 
     \b
     Example (scenes.toml):
