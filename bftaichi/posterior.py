@@ -373,12 +373,19 @@ class Posterior:
     def warm_start(self, ijk: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """``x0`` with the voxels of ``ijk`` that this posterior also holds set to its mean
         (a PCG start when frames are added)."""
-        from kernels.layout import block_key_np
+        return warm_start(self.ijk, self.mean, ijk, x0)
 
-        k_prev = block_key_np(np.asarray(self.ijk, np.int64))  # one int64 per voxel, ascending
-        k_new = block_key_np(np.asarray(ijk, np.int64))
-        pos = np.clip(np.searchsorted(k_prev, k_new), 0, len(k_prev) - 1)
-        same = k_prev[pos] == k_new
-        out = np.array(x0, np.float32, copy=True)
-        out[same] = self.mean[pos[same]]
-        return out
+
+def warm_start(prev_ijk: np.ndarray, prev_mean: np.ndarray, ijk: np.ndarray,
+               x0: np.ndarray) -> np.ndarray:
+    """``x0`` with the voxels of ``ijk`` that ``prev_ijk`` (a band's voxels in its order, or a
+    subset of them; not empty) holds set to ``prev_mean``."""
+    from kernels.layout import block_key_np
+
+    k_prev = block_key_np(np.asarray(prev_ijk, np.int64))  # one int64 per voxel, ascending
+    k_new = block_key_np(np.asarray(ijk, np.int64))
+    pos = np.clip(np.searchsorted(k_prev, k_new), 0, len(k_prev) - 1)
+    same = k_prev[pos] == k_new
+    out = np.array(x0, np.float32, copy=True)
+    out[same] = prev_mean[pos[same]]
+    return out

@@ -34,11 +34,9 @@ def chunk_share(sample, voxel_size_m: float, side: int, halo: int) -> float:
     voxels plus ``halo``) holds, from ``sample`` (a :class:`.resources.SceneSample`): its
     surface cells binned by chunk, the largest count over the total, times
     ``((side + 2 (halo + 1)) / side)^2``."""
-    cell_m = max(4 * voxel_size_m, 2 * sample.spacing_m)
-    if not sample.views:
+    cell_ijk, cell_m = sample.surface_cells(voxel_size_m)
+    if not len(cell_ijk):
         return 1.0
-    pts = [np.floor(p / cell_m) for p, *_ in sample.views]
-    cell_ijk = np.unique(np.concatenate(pts).astype(np.int64), axis=0)
     chunk = np.floor((cell_ijk + 0.5) * cell_m / (side * voxel_size_m)).astype(np.int64)
     _, counts = np.unique(chunk, axis=0, return_counts=True)
     grow = ((side + 2 * (halo + 1)) / side) ** 2

@@ -205,6 +205,7 @@ class SceneSample:
         self.stride = 1
         self.views = []  # (points_L (P, 3), rays_W (P, 3) at camera z = 1, z (P,), centre_L (3,))
         self.origin = np.zeros(3)  # of the local frame L (the first sampled frame's)
+        self._cells: dict[float, np.ndarray] = {}  # surface_cells by voxel size
         for j, i in enumerate(self.picks):
             frame = frames[int(i)]
             if j == 0:
@@ -229,6 +230,16 @@ class SceneSample:
         self.spacing_m = (float(np.quantile(np.concatenate([v[2] for v in self.views]), 0.9))
                           * self.stride / self._f if self.views else 0.0)
 
+    def surface_cells(self, voxel_size_m: float) -> tuple[np.ndarray, float]:
+        """``(cells, cell_m)``: the distinct cells (C, 3) int64 of edge ``cell_m`` that hold a
+        sampled point (see :meth:`measure`), computed once per voxel size."""
+        cell_m = max(4 * voxel_size_m, 2 * self.spacing_m)
+        if voxel_size_m not in self._cells:
+            pts = [np.floor(p / cell_m).astype(np.int64) for p, *_ in self.views]
+            self._cells[voxel_size_m] = (np.unique(np.concatenate(pts), axis=0) if pts
+                                         else np.zeros((0, 3), np.int64))
+        return self._cells[voxel_size_m], cell_m
+
     def measure(self, voxel_size_m: float, trunc_b_m: float) -> dict:
         """Counts at ``voxel_size_m`` with bootstrap truncation ``trunc_b_m`` (metres):
 
@@ -244,10 +255,9 @@ class SceneSample:
           points cover every cell the surface crosses.
         """
         block_m = BLOCK * voxel_size_m
-        cell_m = max(4 * voxel_size_m, 2 * self.spacing_m)
-        block_keys, cell_keys = [], []
+        cell_ijk, cell_m = self.surface_cells(voxel_size_m)
+        block_keys = []
         for pts, rays, z, centre in self.views:
-            cell_keys.append(np.unique(_keys(np.floor(pts / cell_m))))
             steps = int(math.ceil(2 * trunc_b_m * float(np.linalg.norm(rays, axis=1).max())
                                   / (0.5 * block_m))) + 1
             z0, z1 = np.maximum(z - trunc_b_m, 1e-3), z + trunc_b_m
@@ -259,7 +269,7 @@ class SceneSample:
                     "area_m2": 0.0}
         blocks = np.unique(np.concatenate(block_keys))
         candidates = np.unique((blocks[:, None] + _block_steps()[None, :]).ravel())
-        cells = len(np.unique(np.concatenate(cell_keys)))
+        cells = len(cell_ijk)
         return {"blocks": len(blocks), "candidate_blocks": len(candidates),
                 "surface_cells": cells, "cell_m": cell_m, "area_m2": cells * cell_m ** 2 / 1.5}
 

@@ -39,22 +39,24 @@ class Chunk:
     side: int  # voxels
     halo: int  # voxels
 
-    def select(self, voxels: dict) -> dict:
-        """The bootstrap's exported voxels within the core plus ``halo + 1`` voxels."""
+    def _inside(self, ijk: np.ndarray) -> np.ndarray:
+        """Mask of ``ijk`` within the core plus ``halo + 1`` voxels."""
         lo = np.array(self.key) * self.side - self.halo - 1
         hi = (np.array(self.key) + 1) * self.side + self.halo + 1
-        ijk = voxels["ijk"]
-        m = np.all((ijk >= lo) & (ijk < hi), axis=1)
+        return np.all((ijk >= lo) & (ijk < hi), axis=1)
+
+    def select(self, voxels: dict) -> dict:
+        """The bootstrap's exported voxels within the core plus ``halo + 1`` voxels."""
+        m = self._inside(voxels["ijk"])
         return {k: v[m] for k, v in voxels.items()}
 
     def select_warm(self, posterior) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(ijk, mean)`` of ``posterior`` (None: no warm start) within this chunk's box."""
+        """``(ijk, mean)`` of ``posterior`` within this chunk's box, in its order (None: no
+        warm start)."""
         if posterior is None:
             return None
-        lo = np.array(self.key) * self.side - self.halo - 1
-        hi = (np.array(self.key) + 1) * self.side + self.halo + 1
-        m = np.all((posterior.ijk >= lo) & (posterior.ijk < hi), axis=1)
-        return np.asarray(posterior.ijk[m]), np.asarray(posterior.mean[m])
+        m = self._inside(posterior.ijk)
+        return (np.asarray(posterior.ijk[m]), np.asarray(posterior.mean[m])) if m.any() else None
 
 
 MASK_MARGIN_PX = 16 * (1 + 2)
@@ -216,6 +218,7 @@ def run_chunk(job: ChunkJob, frames=None, frame_iter=None) -> dict:
     """One chunk's steps 2-6 (``frames``: default ``job.frames``): the values of its core
     voxels (``core_ijk``, ``mean``, ``var``, ``cov``), the solve's statistics, ``seconds`` per
     sub-stage and, in ``chunk``, its band voxels, frames seen and seconds."""
+    from ..posterior import warm_start
     from .bandsolve import _COLLECT_MIN, Lap, solve_band
     from .band import build_band
 
@@ -225,7 +228,7 @@ def run_chunk(job: ChunkJob, frames=None, frame_iter=None) -> dict:
     band, x0 = build_band(job.voxels, cfg.tsdf.bootstrap_trunc_m)
     lap.collect = len(band) >= _COLLECT_MIN
     if job.warm is not None:
-        x0 = _warm_start(job.warm, band.ijk, x0)
+        x0 = warm_start(*job.warm, band.ijk, x0)
     lap("band")
     seen_by = ChunkFrames(job.frames if frames is None else frames, job.views)
     part = solve_band(cfg, band, x0, seen_by, job.variance, frame_iter, lap, job.noise)
@@ -239,20 +242,6 @@ def run_chunk(job: ChunkJob, frames=None, frame_iter=None) -> dict:
                      "seconds": round(time.perf_counter() - t0, 3),
                      "worker": f"{socket.gethostname()}:{os.getpid()}"}
     return {**out, **part, "seconds": lap.seconds}
-
-
-def _warm_start(warm: tuple, ijk: np.ndarray, x0: np.ndarray) -> np.ndarray:
-    """``x0`` with the voxels of ``ijk`` that ``warm = (ijk, mean)`` holds set to its mean
-    (as :meth:`bftaichi.Posterior.warm_start`)."""
-    prev_ijk, prev_mean = warm
-    k_prev, k_new = _linear(prev_ijk), _linear(ijk)
-    order = np.argsort(k_prev)
-    pos = np.clip(np.searchsorted(k_prev[order], k_new), 0, max(len(k_prev) - 1, 0))
-    out = np.array(x0, np.float32, copy=True)
-    if len(k_prev):
-        same = k_prev[order][pos] == k_new
-        out[same] = prev_mean[order[pos[same]]]
-    return out
 
 
 def core_positions(full_ijk: np.ndarray, core_ijk: np.ndarray, key) -> np.ndarray:
