@@ -58,7 +58,7 @@ COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropp
                "normal_fallbacks", "samples_gated")
 
 # Row status in frame_rows (0: no sample, or gated):
-MODE_ACCUMULATE, MODE_ROWS, MODE_MISFIT = 0, 1, 2  # what observe_row does with a sample
+MODE_ACCUMULATE, MODE_ROWS, MODE_MISFIT, MODE_DIAGONAL = 0, 1, 2, 3  # what observe_row does
 #: Fixed-point units per unit of a misfit sum (pixel shares and squared residuals in voxel^2).
 MISFIT_SCALE = float(1 << 24)
 #: Largest squared residual one sample adds to the misfit, in units of its noise variance (a
@@ -150,10 +150,7 @@ def fixed_point(x: ti.f64) -> ti.i64:
     return ti.cast(x + ti.select(x >= 0, 0.5, -0.5), ti.i64)
 
 
-# -- kernels ----------------------------------------------------------------------------------
-
 _NDA = ti.types.ndarray
-
 
 SAMPLE_DROPPED, SAMPLE_ACCEPTED, SAMPLE_GATED = 0, 1, 2  # what look_up_sample finds
 
@@ -211,13 +208,13 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                  mf: ti.i32, counts: ti.template(), scratch: ti.template(), blocks: ti.template(),
                  sink: ti.template(), mode: ti.template(), part: ti.i32):
     """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5) at the pixels where
-    ``mask`` is 1 (``depth`` is the frame or one level of its super-pixel pyramid, ``prm`` that
-    level's parameters; :func:`superpixel_level`): each pixel first counts
-    its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` (copy ``part``, this
-    thread's: plain int64 adds), or
-    (``to_rows``) writes every sample to ``sink = (row_idx, row_a, row_y, row_w, row_z,
-    row_status)`` at row ``(pixel slot) * (mf + m + 1) + (j + mf)``, pixel slot ``vs *
-    ceil(W / stride) + u / stride``. The row's counters go to ``counts[vs]``; ``scratch``
+    ``mask`` is 1 (``depth``: the frame or one level of its super-pixel pyramid, ``prm`` that
+    level's parameters): each pixel counts its accepted samples, then adds them to ``sink =
+    (S_acc, h_acc)`` (copy ``part``, this thread's: plain int64 adds), or only their diagonal
+    ``w a_c^2`` to ``sink = (D_acc,)`` (MODE_DIAGONAL), or (MODE_ROWS) writes every sample to
+    ``sink = (row_idx, row_a, row_y, row_w, row_z, row_status)`` at row ``(pixel slot) * (mf
+    + m + 1) + (j + mf)``, pixel slot ``vs * ceil(W / stride) + u / stride`` (MODE_MISFIT:
+    :func:`misfit_frame`). The row's counters go to ``counts[vs]``; ``scratch``
     (rows, mf + m + 1, 8) holds the corner indices of the pixel the row is on, ``blocks``
     (rows, mf + m + 1, 11) the row's block cache per sample index (block, 8 rows)."""
     H, W = depth.shape[0], depth.shape[1]
@@ -347,6 +344,12 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                                 R_acc[part, i, 0] = R_acc[part, i, 0] + fixed_point(sa * r2)
                                 R_acc[part, i, 1] = R_acc[part, i, 1] + fixed_point(sa * v2)
                                 R_acc[part, i, 2] = R_acc[part, i, 2] + fixed_point(sa)
+                    elif ti.static(mode == MODE_DIAGONAL):  # (A^T W A)_ii alone, as below
+                        if accepted:
+                            D_acc = ti.static(sink[0])
+                            for c in ti.static(range(8)):
+                                D_acc[part, idx[c]] = D_acc[part, idx[c]] + fixed_point(
+                                    ws * a[c] * a[c])
                     elif accepted:
                         S_acc, h_acc = ti.static(sink[0], sink[1])
                         for ca in ti.static(range(8)):
@@ -568,27 +571,23 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
         h[i] = ti.cast(ti.cast(h_i, ti.f64) * inv_scale, ti.f32)
 
 
-# -- Python side ------------------------------------------------------------------------------
-
-
 @ti.kernel
 def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
                  prm: _NDA(dtype=ti.f64, ndim=1),
                  block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                  ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                  mu: _NDA(dtype=ti.f32, ndim=1), var: _NDA(dtype=ti.f32, ndim=1),
-                 R_acc: _NDA(dtype=ti.i64, ndim=3),
-                 counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
+                 R_acc: _NDA(dtype=ti.i64, ndim=3), counts: _NDA(dtype=ti.i64, ndim=2),
+                 scratch: _NDA(dtype=ti.i32, ndim=3),
                  blocks: _NDA(dtype=ti.i32, ndim=3)):
     """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 3): per voxel,
     ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k a_k s_k (sigma_k^2 - p_k)``
     (both in voxel^2; ``p_k = sum_c a_c^2 var_c``, at most 0.9 sigma_k^2, the part of the noise
     the fit absorbs, from the posterior variances ``var``) and ``sum_k a_k s_k``, in units of
     1 / MISFIT_SCALE, over the accepted samples k within ``MISFIT_NEAR`` voxels of their
-    pixel's surface (the same samples, rows and weights as :func:`observe_frame`):
-    ``r_k = y_k - a_k . mu``,
-    ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its pixel. Integer adds into per-thread parts:
-    deterministic."""
+    pixel's surface (the same samples, rows and weights as :func:`observe_frame`): ``r_k =
+    y_k - a_k . mu``, ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its
+    pixel. Integer adds into per-thread parts: deterministic."""
     n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, R_acc.shape[0]
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))  # as in observe_frame
     for t in range(n_virtual):

@@ -521,6 +521,26 @@ class Observer:
             window_sums(nbr, sums, out)
         return out
 
+    def information(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray,
+                    stride: int = 1, sigma_pose_m: float | None = None) -> np.ndarray:
+        """(N,) float64 ``(A^T W A)_ii`` of one frame alone (1/metre^2), accumulating nothing:
+        bitwise :meth:`diagonal` after :meth:`reset` and :meth:`integrate` of that frame, at a
+        fraction of the cost (:mod:`kernels.information`; what a planner asks of each
+        candidate view). Works after :meth:`release`."""
+        from .information import information_frame
+
+        stride = self._check_stride(stride)
+        depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
+        D_acc = np.zeros((self.parts, max(self.n_voxels, 1)), np.int64)
+        if self.n_voxels:
+            for image, mask, prm_l, _ in self._levels(depth, prm, stride):
+                n_vs = (image.shape[0] + stride - 1) // stride
+                counts = np.zeros((n_vs, N_COUNTS), np.int64)
+                information_frame(image, mask, prm_l, self.block_keys, self.block_table,
+                                  self.reference, stride, self.m, self.mf, D_acc, counts,
+                                  *self._scratch(n_vs))
+        return D_acc.sum(axis=0)[:self.n_voxels] / self.fixed_scale
+
     # -- result ------------------------------------------------------------------------------
     def diagonal(self) -> np.ndarray:
         """(N,) float64 diagonal of the data term so far, ``(A^T W A)_ii`` (1/metre^2): what

@@ -135,6 +135,10 @@ def test_fast_utility_ranks_like_the_exact_variance_reduction(half_sphere):
         planner.observer.reset()
         planner.observer.integrate(depth, planner.K, T, stride=planner.stride)
         S_d, _, _ = planner.observer.finalize()
+        # the planner's diagonal-only pass gives bitwise the full data term's diagonal
+        np.testing.assert_array_equal(
+            planner.observer.information(depth, planner.K, T, stride=planner.stride),
+            planner.observer.diagonal())
         s_new = np.diag(np.linalg.inv(Q + to_csr(S_d, nbr).toarray()))
         exact.append(float(np.sum((exact_s - s_new)[planner.omega])))
     fast, exact = np.array(fast), np.array(exact)

@@ -275,6 +275,7 @@ class Planner:
         self.sigma_model_m = float(np.hypot(o.sigma_model_m, post.sigma_extra_m))
         self.observer = make_observer(post.band, o, vs, tau, post.sigma_extra_m,
                                       post.sigma_corr_m)
+        self.observer.release()  # information() needs only the lookups and the model
         eps = cfg.nbv.eps_voxels * vs
         self.omega = (post.weight > 0) & (np.abs(post.mean) <= eps)
         s = np.asarray(post.var, np.float64)
@@ -300,10 +301,8 @@ class Planner:
     def information(self, depth, T_W_C) -> np.ndarray:
         """(N,) float64 ``(A_v^T W_v A_v)_ii`` of the hypothetical frame ``depth`` at T_W_C,
         scaled to the real frames' stride."""
-        self.observer.reset()
-        self.observer.integrate(depth, self.K, pose_in_local(T_W_C, self.post.origin),
-                                stride=self.stride)
-        return self.observer.diagonal() * self.info_scale
+        return self.observer.information(depth, self.K, pose_in_local(T_W_C, self.post.origin),
+                                         stride=self.stride) * self.info_scale
 
     def _prior_gain(self, T_W_C) -> float:
         """``g0 = s0 - s0 / (1 + s0 w0)`` at the candidate's distance to the region's centre."""
