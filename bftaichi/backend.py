@@ -62,11 +62,40 @@ def init(arch: str = "cpu", *, debug: bool = False, offline_cache: bool = True,
                   default_fp=ti.f32, default_ip=ti.i32, random_seed=0, log_level=ti.WARN)
     if num_threads is not None:
         kwargs["cpu_max_num_threads"] = int(num_threads)
+    _lean_source_positions()
     with _stdout_to_stderr():  # Taichi prints "[Taichi] Starting on arch=..." on stdout
         ti.init(**kwargs)
     _state["arch"] = arch
     ran = ti.lang.impl.current_cfg().arch
     _state["effective"] = "cpu" if ran in (ti.x64, ti.arm64) else ran.name
+
+
+def _lean_source_positions() -> None:
+    """Make Taichi's front end label each AST node with its file, line and source line only.
+
+    Taichi 1.7 builds, for every node of every kernel it materialises (also when the offline
+    cache then serves the compiled code), a message with the node's source excerpt wrapped
+    by ``textwrap`` and a caret line under it, for compile errors that may never happen: 1-2 s
+    of a warm ``bftaichi run`` (tools/bench_startup.py, docs/measurements.md). The lean label
+    keeps what a compile error needs to point at the code (file, line, the line itself); set
+    ``BFTAICHI_TAICHI_POSITIONS=full`` for Taichi's own. Applied only where Taichi's
+    ``ASTTransformerContext.get_pos_info`` exists as in 1.7."""
+    if os.environ.get("BFTAICHI_TAICHI_POSITIONS", "") == "full":
+        return
+    try:
+        from taichi.lang.ast.ast_transformer_utils import ASTTransformerContext as Ctx
+    except ImportError:
+        return
+    if not callable(getattr(Ctx, "get_pos_info", None)) or getattr(Ctx, "_bftaichi_lean", False):
+        return
+
+    def get_pos_info(self, node):
+        line = node.lineno + self.lineno_offset
+        src = self.src[node.lineno - 1] if 0 < node.lineno <= len(self.src) else ""
+        return f'File "{self.file}", line {line}, in {self.func.func.__name__}:\n{src}\n'
+
+    Ctx.get_pos_info = get_pos_info
+    Ctx._bftaichi_lean = True
 
 
 @contextlib.contextmanager

@@ -222,3 +222,21 @@ def test_bench_embed_prints_both_times_and_the_ratio():
     assert res.returncode == 0, res.stderr[-2000:]
     assert "200 particles, 4 steps" in res.stdout and "ratio fused / analytic" in res.stdout
     assert all(f"  {name} " in res.stdout for name in ("fused", "analytic"))
+
+
+def test_a_kernel_error_still_names_its_file_line_and_code():
+    """bftaichi.init shortens Taichi's per-node source labels (bftaichi.backend
+    ._lean_source_positions, a start-up cost): a user's broken kernel must still be reported at
+    its file and line, with the offending line."""
+    @ti.kernel
+    def broken(out: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+        for i in range(out.shape[0]):
+            out[i] = undefined_name_in_kernel  # noqa: F821
+
+    with pytest.raises(Exception) as err:
+        broken(np.zeros(3, np.float32))
+    msg = str(err.value)
+    source = Path(__file__).read_text().splitlines()
+    line = 1 + next(i for i, text in enumerate(source) if "= undefined_name_in_kernel" in text)
+    assert Path(__file__).name in msg and f"line {line}" in msg, msg
+    assert "out[i] = undefined_name_in_kernel" in msg, msg
