@@ -94,3 +94,12 @@ def test_evalviews_table_and_gross_errors_on_a_few_real_frames(tmp_path):
     out = _run([TOOLS / "gross_errors.py", tmp_path / "evalviews-8cm", "--frames", "6",
                 "--every", "2"])
     assert "pixels where all three have depth" in out and "in front of the measured depth" in out
+
+
+def test_sigma_breakdown_compares_bulk_and_mean_square():
+    out = _run([TOOLS / "sigma_breakdown.py", "homer", "few_views",
+                "--set", "synthetic.n_views=4"])
+    assert "homer/few_views:" in out and "fitted noise" in out
+    cover = out.split("within 1 / 2 / 3 sigma: ")[1].split(" %")[0]
+    c1, c2, c3 = (float(x) for x in cover.split(" / "))
+    assert 0 < c1 <= c2 <= c3 <= 100

@@ -1,0 +1,87 @@
+#!/usr/bin/env python
+"""Where a suite case's vertex sigma stands against its errors, in the bulk and on average.
+
+For one case of ``tools/suite.py`` (a mesh and a capture condition), the posterior is solved
+in-process and its mesh judged against the exact vertex errors (libigl, as the suite): the
+median and the RMS of the errors against those of sigma (a Gaussian sigma has ``median |e| =
+0.674 sigma`` and ``RMS e = sigma``), the coverage at 1 / 2 / 3 sigma, and, on the voxels
+within one voxel of the mean's surface, what the variance is made of: the probe variance
+before the local-noise step, its scale, and the misfit term ``b^2`` (bftaichi/stages/
+bandsolve.py)::
+
+    python tools/sigma_breakdown.py homer few_views
+    python tools/sigma_breakdown.py stanford-bunny sparse_far --set prior.curvature=0.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("mesh", help="a mesh of the suite, e.g. homer")
+    ap.add_argument("condition", help="a capture condition of the suite, e.g. few_views")
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    args = ap.parse_args(argv)
+
+    import suite
+    import bftaichi as bf
+    import bftaichi.stages.bandsolve as bandsolve
+    from bftaichi.evaluation.metrics import vertex_errors
+    from bftaichi.formats.synthetic import SyntheticDataset
+    from bftaichi.geometry import mesh_in_local
+
+    if args.condition not in suite.CONDITIONS:
+        ap.error(f"unknown condition {args.condition!r}; one of {', '.join(suite.CONDITIONS)}")
+    cfg = bf.load_config(None, [*suite.case_sets(args.mesh, args.condition, args.data),
+                                *args.sets])
+    seen = {}
+    local_misfit = bandsolve.local_misfit
+
+    def spy(observer, frames, mean, var, nbr, stride):  # the variance before the local noise
+        scale, b2, stats = local_misfit(observer, frames, mean, var, nbr, stride)
+        seen.update(var0=np.array(var, np.float64), scale=scale, b2=b2)
+        return scale, b2, stats
+
+    bandsolve.local_misfit = spy
+    frames = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)
+    recon = bf.Reconstructor(cfg)
+    for f in frames:
+        recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
+    post = recon.solve()
+    mesh = post.extract_mesh(local=True)
+    err = vertex_errors(mesh.vertices, mesh_in_local(frames.gt_mesh, post.origin))
+    sigma = np.asarray(mesh.vertex_attributes["sigma"], np.float64)
+    mm = 1e3
+    print(f"{args.mesh}/{args.condition}: {len(err)} vertices")
+    print(f"  error: median {np.median(err) * mm:.3f} mm, RMS {np.sqrt(np.mean(err ** 2)) * mm:.3f} mm"
+          f"; sigma: median {np.median(sigma) * mm:.3f} mm, RMS "
+          f"{np.sqrt(np.mean(sigma ** 2)) * mm:.3f} mm")
+    print(f"  median |e| / (0.674 median sigma) = {np.median(err) / (0.674 * np.median(sigma)):.2f}"
+          f"; mean e^2 / mean sigma^2 = {np.mean(err ** 2) / np.mean(sigma ** 2):.2f}"
+          " (1 and 1 for a calibrated Gaussian)")
+    z = err / np.maximum(sigma, 1e-12)
+    print("  within 1 / 2 / 3 sigma: " + " / ".join(f"{100 * np.mean(z <= k):.1f}" for k in (1, 2, 3))
+          + " %")
+    if seen:
+        near = np.abs(post.mean) < cfg.tsdf.voxel_size_m
+        v0, b2 = seen["var0"][near], seen["b2"][near].astype(np.float64)
+        print(f"  {int(near.sum())} voxels within a voxel of the surface: sqrt(probe variance) "
+              f"median {np.median(np.sqrt(v0)) * mm:.3f} mm, local-noise scale median "
+              f"{np.median(seen['scale'][near]):.3f}, b^2 > 0 on {100 * np.mean(b2 > 0):.0f} %, "
+              f"b^2 / final variance median {np.median(b2 / post.var[near]):.2f}")
+    print(f"  fitted noise: extra {post.sigma_extra_m * mm:.3f} mm, shared {post.sigma_corr_m * mm:.3f} mm")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
