@@ -7,7 +7,7 @@ median and the RMS of the errors against those of sigma (a Gaussian sigma has ``
 0.674 sigma`` and ``RMS e = sigma``), the coverage at 1 / 2 / 3 sigma, and, on the voxels
 within one voxel of the mean's surface, what the variance is made of: the probe variance
 before the local-noise step, its scale, and the misfit term ``b^2`` (bftaichi/stages/
-bandsolve.py)::
+bandsolve.py); and the 5 % largest errors against the rest (:func:`tail`)::
 
     python tools/sigma_breakdown.py homer few_views
     python tools/sigma_breakdown.py stanford-bunny sparse_far --set prior.curvature=0.5
@@ -80,7 +80,30 @@ def main(argv=None) -> int:
               f"{np.median(seen['scale'][near]):.3f}, b^2 > 0 on {100 * np.mean(b2 > 0):.0f} %, "
               f"b^2 / final variance median {np.median(b2 / post.var[near]):.2f}")
     print(f"  fitted noise: extra {post.sigma_extra_m * mm:.3f} mm, shared {post.sigma_corr_m * mm:.3f} mm")
+    tail(mesh, err, sigma)
     return 0
+
+
+def tail(mesh, err: np.ndarray, sigma: np.ndarray) -> None:
+    """The 5 % largest errors against the rest: sigma and two features of the mesh itself, the
+    mean angle between a vertex's normal and its neighbours' (a crease or a crumpled patch) and
+    lying on the mesh boundary (the edge of what was observed); Spearman of each with the error."""
+    from scipy.stats import spearmanr
+
+    normals, neighbours = mesh.vertex_normals, mesh.vertex_neighbors
+    angle = np.array([np.mean(np.arccos(np.clip(normals[nb] @ normals[i], -1.0, 1.0)))
+                      if len(nb) else 0.0 for i, nb in enumerate(neighbours)])
+    edges, count = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
+    boundary = np.zeros(len(err))
+    boundary[edges[count == 1].ravel()] = 1.0
+    top = err > np.quantile(err, 0.95)
+    print(f"  the 5 % largest errors: median {np.median(err[top]) * 1e3:.2f} mm against "
+          f"{np.median(err[~top]) * 1e3:.2f} mm for the rest")
+    for name, x, unit in (("sigma", sigma * 1e3, " mm"), ("normal angle", angle, " rad"),
+                          ("on the boundary", boundary, "")):
+        stat = (f"{100 * x[top].mean():.1f} % against {100 * x[~top].mean():.1f} %" if not unit
+                else f"median {np.median(x[top]):.3f}{unit} against {np.median(x[~top]):.3f}{unit}")
+        print(f"    {name}: {stat}; Spearman with the error {spearmanr(x, err).statistic:.2f}")
 
 
 if __name__ == "__main__":
