@@ -104,6 +104,16 @@ def tail(mesh, err: np.ndarray, sigma: np.ndarray) -> None:
         stat = (f"{100 * x[top].mean():.1f} % against {100 * x[~top].mean():.1f} %" if not unit
                 else f"median {np.median(x[top]):.3f}{unit} against {np.median(x[~top]):.3f}{unit}")
         print(f"    {name}: {stat}; Spearman with the error {spearmanr(x, err).statistic:.2f}")
+    z = err / np.maximum(sigma, 1e-12)
+    creased, edge = angle > 0.5, boundary > 0
+    for name, sel in (("smooth interior (normal angle <= 0.5 rad, not on the boundary)",
+                       ~creased & ~edge), ("creased (normal angle > 0.5 rad)", creased),
+                      ("on the boundary", edge)):
+        if sel.any():
+            print(f"  {name}: {int(sel.sum())} vertices, median error "
+                  f"{np.median(err[sel]) * 1e3:.2f} mm, median sigma "
+                  f"{np.median(sigma[sel]) * 1e3:.2f} mm, within 1 / 2 / 3 sigma "
+                  + " / ".join(f"{100 * np.mean(z[sel] <= k):.0f}" for k in (1, 2, 3)) + " %")
 
 
 if __name__ == "__main__":
