@@ -38,9 +38,12 @@ def test_bench_render_reports_frame_rate():
 
 
 def test_bench_startup_reports_cold_and_warm():
-    out = _run([TOOLS / "bench_startup.py", "--repeats", "1", "--", "run", "scenes/default.toml",
+    out = _run([TOOLS / "bench_startup.py", "--repeats", "1", "--ab",
+                "BFTAICHI_TAICHI_POSITIONS=full", "--", "run", "scenes/default.toml",
                 *[a for s in TINY_SCENE_SETS for a in ("--set", s)]])
     assert "cold (empty Taichi cache)" in out and "warm (offline cache)" in out
+    assert "warm, BFTAICHI_TAICHI_POSITIONS=full: median" in out
+    assert "warm, BFTAICHI_TAICHI_POSITIONS unset: median" in out
 
 
 @pytest.mark.skipif(not (SHARED / "rgbd" / "7scenes-redkitchen").is_dir(),
