@@ -380,6 +380,14 @@ class Observer:
         out[P_PIXELS] = float(k * k)
         return out
 
+    def _level_runs(self, depth: np.ndarray, prm: np.ndarray, stride: int):
+        """Per level of :meth:`_levels`, what a frame kernel takes besides the band:
+        ``(image, mask, params, counts, scratch)``, ``counts`` zeroed (strided rows,
+        N_COUNTS) and ``scratch`` the reused per-row arrays of :meth:`_scratch`."""
+        for image, mask, prm_l, _ in self._levels(depth, prm, stride):
+            n_vs = (image.shape[0] + stride - 1) // stride
+            yield image, mask, prm_l, np.zeros((n_vs, N_COUNTS), np.int64), self._scratch(n_vs)
+
     def _scratch(self, n_rows: int) -> tuple:
         """Per-row scratch arrays of the frame kernel (see observe_frame), reused."""
         if self._scratch_buf is None or self._scratch_buf[0].shape[0] < n_rows:
@@ -409,13 +417,11 @@ class Observer:
         S_acc, h_acc = self._data_term()
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         frame = np.zeros(N_COUNTS, np.int64)
-        for image, mask, prm_l, _ in self._levels(depth, prm, stride):
-            n_vs = (image.shape[0] + stride - 1) // stride
-            counts = np.zeros((n_vs, N_COUNTS), np.int64)
+        for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
             if self.n_voxels:
                 observe_frame(image, mask, prm_l, self.block_keys, self.block_table,
                               self.reference, stride, self.m, self.mf, S_acc, h_acc,
-                              counts, *self._scratch(n_vs))
+                              counts, *scratch)
             frame += counts.sum(axis=0)
         self.counts += frame
         self.frames += 1
@@ -488,12 +494,9 @@ class Observer:
             self._R_acc = zeros_aligned((self.parts, max(self.n_voxels, 1), 3), np.int64)
         if not self.n_voxels:
             return
-        for image, mask, prm_l, _ in self._levels(depth, prm, stride):
-            n_vs = (image.shape[0] + stride - 1) // stride
-            counts = np.zeros((n_vs, N_COUNTS), np.int64)
+        for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
             misfit_frame(image, mask, prm_l, self.block_keys, self.block_table, self.reference,
-                         stride, self.m, self.mf, mu, var, self._R_acc, counts,
-                         *self._scratch(n_vs))
+                         stride, self.m, self.mf, mu, var, self._R_acc, counts, *scratch)
 
     def misfit_sums(self) -> np.ndarray:
         """(N, 3) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
@@ -533,12 +536,10 @@ class Observer:
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         D_acc = np.zeros((self.parts, max(self.n_voxels, 1)), np.int64)
         if self.n_voxels:
-            for image, mask, prm_l, _ in self._levels(depth, prm, stride):
-                n_vs = (image.shape[0] + stride - 1) // stride
-                counts = np.zeros((n_vs, N_COUNTS), np.int64)
+            for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
                 information_frame(image, mask, prm_l, self.block_keys, self.block_table,
                                   self.reference, stride, self.m, self.mf, D_acc, counts,
-                                  *self._scratch(n_vs))
+                                  *scratch)
         return D_acc.sum(axis=0)[:self.n_voxels] / self.fixed_scale
 
     # -- result ------------------------------------------------------------------------------

@@ -42,38 +42,29 @@ def main(argv=None) -> int:
     if args.ab is not None and "=" not in args.ab:
         ap.error(f"--ab {args.ab!r}: expected NAME=VALUE")
     exe = [sys.executable, "-m", "bftaichi.cli"]
-    cold, warm = [], []
-    ab_cache = None
-    for _ in range(args.repeats):
+    cold, warm, with_var, without = [], [], [], []
+    for i in range(args.repeats):
         cache = tempfile.mkdtemp(prefix="ti-cache-")
         out = tempfile.mkdtemp(prefix="bftaichi-out-")
         env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=cache)
         cmd = exe + args.command + ["--out", out, "--overwrite", "--quiet"]
-        keep = args.ab is not None and ab_cache is None  # the A/B below reuses this cache
         try:
             cold.append(_time(cmd, env))
             warm.append(_time(cmd, env))
+            if args.ab is not None and i == 0:  # the A/B: warm runs on this filled cache
+                name, value = args.ab.split("=", 1)
+                for _ in range(args.repeats):
+                    with_var.append(_time(cmd, dict(env, **{name: value})))
+                    without.append(_time(cmd, {k: v for k, v in env.items() if k != name}))
         finally:
-            if keep:
-                ab_cache = (cache, out, env, cmd)
-            else:
-                shutil.rmtree(cache, ignore_errors=True)
-                shutil.rmtree(out, ignore_errors=True)
+            shutil.rmtree(cache, ignore_errors=True)
+            shutil.rmtree(out, ignore_errors=True)
     print(f"command: bftaichi {' '.join(args.command)}")
     print(f"cold (empty Taichi cache): {min(cold):.2f} s   (all: {', '.join(f'{t:.2f}' for t in cold)})")
     print(f"warm (offline cache):      {min(warm):.2f} s   (all: {', '.join(f'{t:.2f}' for t in warm)})")
     print(f"JIT overhead saved by the cache: {min(cold) - min(warm):.2f} s")
-    if ab_cache is not None:
-        cache, out, env, cmd = ab_cache
-        name, value = args.ab.split("=", 1)
-        with_var, without = [], []
-        try:
-            for _ in range(args.repeats):
-                with_var.append(_time(cmd, dict(env, **{name: value})))
-                without.append(_time(cmd, {k: v for k, v in env.items() if k != name}))
-        finally:
-            shutil.rmtree(cache, ignore_errors=True)
-            shutil.rmtree(out, ignore_errors=True)
+    if args.ab is not None:
+        name = args.ab.split("=", 1)[0]
         for label, times in ((f"warm, {args.ab}", with_var), (f"warm, {name} unset", without)):
             print(f"{label}: median {statistics.median(times):.2f} s   "
                   f"(all: {', '.join(f'{t:.2f}' for t in times)})")

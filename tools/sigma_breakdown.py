@@ -90,9 +90,13 @@ def tail(mesh, err: np.ndarray, sigma: np.ndarray) -> None:
     lying on the mesh boundary (the edge of what was observed); Spearman of each with the error."""
     from scipy.stats import spearmanr
 
-    normals, neighbours = mesh.vertex_normals, mesh.vertex_neighbors
-    angle = np.array([np.mean(np.arccos(np.clip(normals[nb] @ normals[i], -1.0, 1.0)))
-                      if len(nb) else 0.0 for i, nb in enumerate(neighbours)])
+    normals, pairs = mesh.vertex_normals, mesh.edges_unique
+    edge_angle = np.arccos(np.clip(np.einsum("ij,ij->i", normals[pairs[:, 0]],
+                                             normals[pairs[:, 1]]), -1.0, 1.0))
+    n = len(normals)
+    degree = np.bincount(pairs.ravel(), minlength=n)
+    angle = np.bincount(pairs.ravel(), np.repeat(edge_angle, 2), minlength=n) \
+        / np.maximum(degree, 1)  # the mean over each vertex's neighbours
     edges, count = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
     boundary = np.zeros(len(err))
     boundary[edges[count == 1].ravel()] = 1.0
