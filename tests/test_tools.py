@@ -106,3 +106,13 @@ def test_sigma_breakdown_compares_bulk_and_mean_square():
     cover = out.split("within 1 / 2 / 3 sigma: ")[1].split(" %")[0]
     c1, c2, c3 = (float(x) for x in cover.split(" / "))
     assert 0 < c1 <= c2 <= c3 <= 100
+
+
+def test_sigma_breakdown_takes_a_synthetic_scene_file():
+    out = _run([TOOLS / "sigma_breakdown.py", "scenes/seed_sphere.toml",
+                "--set", "synthetic.n_views=4"])
+    assert "scenes/seed_sphere.toml:" in out and "smooth interior" in out
+    proc = subprocess.run([sys.executable, str(TOOLS / "sigma_breakdown.py"),
+                           "scenes/seed_sphere.toml", "few_views"], capture_output=True,
+                          text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 2 and "takes no condition" in proc.stderr

@@ -11,6 +11,7 @@ bandsolve.py); and the 5 % largest errors against the rest (:func:`tail`)::
 
     python tools/sigma_breakdown.py homer few_views
     python tools/sigma_breakdown.py stanford-bunny sparse_far --set prior.curvature=0.5
+    python tools/sigma_breakdown.py scenes/seed_sphere.toml      # a synthetic scene file
 """
 
 from __future__ import annotations
@@ -27,8 +28,9 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("mesh", help="a mesh of the suite, e.g. homer")
-    ap.add_argument("condition", help="a capture condition of the suite, e.g. few_views")
+    ap.add_argument("mesh", help="a mesh of the suite, e.g. homer, or a synthetic scene file "
+                                 "such as scenes/seed_sphere.toml (then no condition)")
+    ap.add_argument("condition", nargs="?", help="a capture condition of the suite, e.g. few_views")
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE")
     args = ap.parse_args(argv)
@@ -40,10 +42,17 @@ def main(argv=None) -> int:
     from bftaichi.formats.synthetic import SyntheticDataset
     from bftaichi.geometry import mesh_in_local
 
-    if args.condition not in suite.CONDITIONS:
+    if args.mesh.endswith(".toml"):
+        if args.condition:
+            ap.error("a scene file takes no condition")
+        cfg = bf.load_config(args.mesh, args.sets)
+        if cfg.scene.source != "synthetic":
+            ap.error(f"{args.mesh} is not a synthetic scene: no true mesh to judge against")
+    elif args.condition not in suite.CONDITIONS:
         ap.error(f"unknown condition {args.condition!r}; one of {', '.join(suite.CONDITIONS)}")
-    cfg = bf.load_config(None, [*suite.case_sets(args.mesh, args.condition, args.data),
-                                *args.sets])
+    else:
+        cfg = bf.load_config(None, [*suite.case_sets(args.mesh, args.condition, args.data),
+                                    *args.sets])
     seen = {}
     local_misfit = bandsolve.local_misfit
 
@@ -59,10 +68,11 @@ def main(argv=None) -> int:
         recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
     post = recon.solve()
     mesh = post.extract_mesh(local=True)
-    err = vertex_errors(mesh.vertices, mesh_in_local(frames.gt_mesh, post.origin))
+    gt = mesh_in_local(frames.gt_mesh, post.origin)
+    err = vertex_errors(mesh.vertices, gt)
     sigma = np.asarray(mesh.vertex_attributes["sigma"], np.float64)
     mm = 1e3
-    print(f"{args.mesh}/{args.condition}: {len(err)} vertices")
+    print(f"{args.mesh}{'/' + args.condition if args.condition else ''}: {len(err)} vertices")
     print(f"  error: median {np.median(err) * mm:.3f} mm, RMS {np.sqrt(np.mean(err ** 2)) * mm:.3f} mm"
           f"; sigma: median {np.median(sigma) * mm:.3f} mm, RMS "
           f"{np.sqrt(np.mean(sigma ** 2)) * mm:.3f} mm")
@@ -80,14 +90,17 @@ def main(argv=None) -> int:
               f"{np.median(seen['scale'][near]):.3f}, b^2 > 0 on {100 * np.mean(b2 > 0):.0f} %, "
               f"b^2 / final variance median {np.median(b2 / post.var[near]):.2f}")
     print(f"  fitted noise: extra {post.sigma_extra_m * mm:.3f} mm, shared {post.sigma_corr_m * mm:.3f} mm")
-    tail(mesh, err, sigma)
+    tail(mesh, err, sigma, gt)
     return 0
 
 
-def tail(mesh, err: np.ndarray, sigma: np.ndarray) -> None:
+def tail(mesh, err: np.ndarray, sigma: np.ndarray, gt) -> None:
     """The 5 % largest errors against the rest: sigma and two features of the mesh itself, the
     mean angle between a vertex's normal and its neighbours' (a crease or a crumpled patch) and
-    lying on the mesh boundary (the edge of what was observed); Spearman of each with the error."""
+    lying on the mesh boundary (the edge of what was observed); Spearman of each with the error;
+    and on which side of the true mesh ``gt`` the tail lies (outside: a false surface in free
+    space; libigl's generalised winding number, so open meshes are judged too)."""
+    import igl
     from scipy.stats import spearmanr
 
     normals, pairs = mesh.vertex_normals, mesh.edges_unique
@@ -108,6 +121,10 @@ def tail(mesh, err: np.ndarray, sigma: np.ndarray) -> None:
         stat = (f"{100 * x[top].mean():.1f} % against {100 * x[~top].mean():.1f} %" if not unit
                 else f"median {np.median(x[top]):.3f}{unit} against {np.median(x[~top]):.3f}{unit}")
         print(f"    {name}: {stat}; Spearman with the error {spearmanr(x, err).statistic:.2f}")
+    inside = igl.winding_number(np.asarray(gt.vertices, np.float64),
+                                np.asarray(gt.faces, np.int64),
+                                np.asarray(mesh.vertices, np.float64)[top]) > 0.5
+    print(f"    outside the true surface: {100 * (1 - inside.mean()):.1f} % of the tail")
     z = err / np.maximum(sigma, 1e-12)
     creased, edge = angle > 0.5, boundary > 0
     for name, sel in (("smooth interior (normal angle <= 0.5 rad, not on the boundary)",
