@@ -43,7 +43,8 @@ P_INV_VOXEL = 36  # 1 / voxel_size, 1/metre
 P_VAR_CORR = 37  # per-frame noise shared by a voxel's pixels, metres^2 (see observe_row)
 P_PIXELS = 38  # full-resolution pixels per (super-)pixel of the image observed, k^2 (1: none)
 P_AGGREGATE = 39  # largest super-pixel side, in voxel footprints (0: every pixel on its own)
-N_PARAMS = 40
+P_BEHIND = 40  # 1: the samples behind the surface reach tau max(cos, cos_min) (0: tau)
+N_PARAMS = 41
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -69,9 +70,8 @@ MISFIT_CAP = 100.0
 #: (``|y| < MISFIT_NEAR h``): those in the cells that hold the zero crossing, where a vertex
 #: lies. Farther samples carry the model error of the projective distance and of the pixel
 #: normal (on the suite's cheburashka/dropout their residual against the true SDF is 1.4-2.9 mm
-#: RMS, against 1.2 mm at the surface: tools/residual_profile.py), which does not move the
-#: zero crossing; counted, it made sigma ~2x too large on smooth surfaces
-#: (docs/measurements.md).
+#: RMS, against 1.2 mm at the surface: tools/residual_profile.py), which does not move the zero
+#: crossing; counted, it made sigma ~2x too large on smooth surfaces (docs/measurements.md).
 MISFIT_NEAR = 1.0
 ROW_ACCEPTED = 1
 ROW_DROPPED = 2
@@ -242,26 +242,27 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
             n_dot_ray = ti.cast(n_C.dot(ray), ti.f64)  # = -cos(angle) |ray| <= 0
             cos_a = -n_dot_ray / ti.cast(ray.norm(), ti.f64)
             D = ti.cast(d, ti.f64)
+            m_b = m  # behind the surface: tau, or tau max(cos, cos_min) in depth (step 2b)
+            if prm[P_BEHIND] > 0:
+                m_b = ti.cast(ti.cast(m, ti.f64) * ti.max(cos_a, cos_min), ti.i32)
             # y = (z - D) <n, ray>: an axial depth error e moves y by e |<n, ray>|
             sd = (prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) * ti.max(cos_a, cos_min) \
                 * ti.cast(ray.norm(), ti.f64)
             # a frame's pixels over one voxel share its pose / calibration error (variance
-            # P_VAR_CORR): their mean has variance sd^2 / rho + corr, so each of the rho
-            # pixels counts as sd^2 + rho corr (rho = the voxel's footprint in pixels, >= 1)
-            # (prm[P_K] is this level's fx = fx / k: rho counts full-resolution pixels)
+            # P_VAR_CORR): their mean has variance sd^2 / rho + corr, so each of the rho pixels
+            # counts as sd^2 + rho corr (rho: the voxel's footprint in full-resolution pixels)
             rho = ti.max(1.0, (prm[P_K] / (D * prm[P_INV_VOXEL] * ti.cast(stride, ti.f64))) ** 2
                          * prm[P_PIXELS])
             var_pixel = sd * sd + prm[P_VAR_EXTRA] + prm[P_VAR_CORR]  # one pixel's noise
             inv_var = 1.0 / (var_pixel + (rho - 1.0) * prm[P_VAR_CORR])
             m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
-            # pass 0 looks the cells up and counts the pixel's accepted samples n_acc (the
-            # corner indices wait in this row's scratch); pass 1 adds the accepted samples
-            # (or writes rows) with w = 1 / (n_acc sigma^2).
+            # pass 0 looks the cells up and counts the pixel's accepted samples n_acc (corner
+            # indices wait in the scratch); pass 1 adds them (or writes rows), w = 1 / (n_acc s^2)
             n_acc = 0
             # the misfit adds only the samples near the surface (MISFIT_NEAR): it looks those
             # up first, the others only until min(n_acc, share) is settled (run-time sweeps)
             for sweep in range(ti.static(2 if mode == MODE_MISFIT else 1)):
-                for j in range(-mf, m + 1):
+                for j in range(-mf, m_b + 1):
                     z = D + ti.cast(j, ti.f64) * spacing
                     look = 0
                     if z > 0:
@@ -290,7 +291,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                 w = prm[P_PIXELS] * inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64),
                                                      prm[P_SHARE])
                 ws = w * scale
-                for j in range(-mf, m + 1):
+                for j in range(-mf, m_b + 1):
                     delta = ti.cast(j, ti.f64) * spacing
                     z = D + delta
                     if z <= 0:

@@ -20,6 +20,16 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
    observation ``y_j = <n, x_j - p> = (z_j - D) <n, K^-1 (u, v, 1)>``: the signed distance of
    ``x_j`` to the plane through ``p`` with normal ``n``, positive in front of the surface. It is
    *not* clamped: ``|y_j| <= tau |K^-1 (u, v, 1)|``, up to ~1.25 tau in image corners.
+   2b. **Reach behind the surface** (``behind_incidence``, opt-in): a sample behind it (``j >
+   0``) asserts "inside by ``|y_j|``", which holds only while the ray is still inside the
+   object. A ray entering a body at incidence ``angle`` leaves it after the chord ``2 R
+   cos(angle)`` (``R``: its radius of curvature); with ``behind_incidence`` the samples behind
+   reach at most ``tau max(cos(angle), cos_min)`` in camera depth, the units of the truncation
+   (``j <= floor(m max(cos, cos_min))``): the chord of a body ``tau`` thick, with the noise
+   model's floor on the cosine. Beyond it, at a silhouette or a crease seen at a grazing angle,
+   they assert "inside" in free space that no other ray sees, and the surface bulges out there
+   (docs/measurements.md). In front of the surface the planar ``y_j`` underestimates the
+   distance to a convex surface, which does not move the zero crossing.
 3. **Row** ``a_j``: trilinear weights of ``x_j`` over the cell whose corners are the voxel
    centres ``(ijk + 0.5) * voxel_size`` around it: base corner ``c0 = floor(x_j / voxel_size -
    0.5)``, fraction ``f = x_j / voxel_size - 0.5 - c0``, corner ``c0 + (ci, cj, ck)`` has weight
@@ -104,12 +114,12 @@ import os
 import numpy as np
 import taichi as ti
 
-from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B, P_COS_MIN,
-                       MAX_PARTS, P_AGGREGATE, P_GATE, P_INV_VOXEL, P_JUMP, P_K, P_M, P_O, P_PIXELS, P_R,
-                       P_RADIUS, P_SCALE, P_SHARE, P_SPACING, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
-                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE, estimate_normals,
-                       finalize_stencil, misfit_frame, observe_frame, observe_rows,
-                       superpixels, window_sums)
+from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B,
+                       P_COS_MIN, MAX_PARTS, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
+                       P_K, P_M, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
+                       P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE,
+                       estimate_normals, finalize_stencil, misfit_frame, observe_frame,
+                       observe_rows, superpixels, window_sums)
 from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table
 from .stencil import free_compile_arguments, zeros_aligned
@@ -172,6 +182,8 @@ class Observer:
         gate_m, reference: the side gate of step 3b: the gate in metres (no default; 0: no
             gate, no reference needed) and the (N,) reference SDF (metres; NaN where there is
             none).
+        behind_incidence: the samples behind the surface reach ``tau max(cos, cos_min)`` in
+            depth instead of ``tau`` (step 2b; default False).
         normal_max_slope_deg: steepest surface inclination (from the image plane) whose
             neighbouring depths still count as one surface in the normal estimate, degrees.
 
@@ -189,7 +201,7 @@ class Observer:
                  normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0,
                  count_once: str, front_m: float, gate_m: float,
                  reference: np.ndarray | None = None, sigma_corr_m: float = 0.0,
-                 aggregate: float = 0.0):
+                 aggregate: float = 0.0, behind_incidence: bool = False):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
@@ -249,6 +261,7 @@ class Observer:
             raise ValueError(f"Observer: front_m = {front_m} must be >= trunc_m = {self.trunc_m}")
         self.mf = sample_count(self.front_m, self.spacing_m) // 2
         self.gate_m = float(gate_m)
+        self.behind_incidence = bool(behind_incidence)
         if not (math.isfinite(self.gate_m) and self.gate_m >= 0):
             raise ValueError(f"Observer: gate_m = {gate_m} must be >= 0 (0: no gate)")
         if self.gate_m > 0:
@@ -338,6 +351,7 @@ class Observer:
         prm[P_VAR_CORR] = self.sigma_corr_m ** 2
         prm[P_PIXELS] = 1.0
         prm[P_AGGREGATE] = self.aggregate
+        prm[P_BEHIND] = float(self.behind_incidence)
         return depth, prm
 
     def _levels(self, depth: np.ndarray, prm: np.ndarray, stride: int) -> list:

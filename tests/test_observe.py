@@ -222,6 +222,35 @@ def test_front_samples_reach_front_m_in_front_only(box):
         band.observer(front_m=0.5 * TRUNC)
 
 
+def test_samples_behind_the_surface_reach_tau_times_the_incidence_cosine(box):
+    """With behind_incidence, a pixel's samples behind the surface reach at most tau
+    max(cos(angle), cos_min) in camera depth (kernels.observe, step 2b): a ray at a grazing
+    angle leaves the body soon after it enters, so its samples stop asserting "inside" sooner;
+    head-on rays reach on. Without it they reach tau (the paper's +-tau)."""
+    band, frames = box
+    obs, paper = band.observer(behind_incidence=True), band.observer()
+    cos_min = NOISE["cos_min"]
+    reach_head_on, n_grazing = 0.0, 0
+    for frame in frames:
+        face, flat = box_faces(frame)
+        r = obs.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+        ray, _ = rays_W(frame)
+        ray = ray.reshape(-1, 3)[r["pixel"]]
+        n = face_normal(face).reshape(-1, 3)[r["pixel"]]
+        cos = np.abs(np.einsum("ij,ij->i", n, ray)) / np.linalg.norm(ray, axis=1)
+        behind = flat.ravel()[r["pixel"]] & (r["z"] > frame.depth_m.ravel()[r["pixel"]])
+        dz = (r["z"] - frame.depth_m.ravel()[r["pixel"]])[behind]
+        assert (dz <= TRUNC * np.maximum(cos[behind], cos_min) + 1e-6).all()
+        reach_head_on = max(reach_head_on, dz[cos[behind] > 0.9].max(initial=0.0))
+        n_grazing += int((cos[behind] < 0.45).sum())
+        # the default (the paper's +-tau) reaches tau behind whatever the angle
+        p = paper.frame_rows(frame.depth_m, frame.K, frame.T_W_C)
+        dz_paper = p["z"] - frame.depth_m.ravel()[p["pixel"]]
+        assert dz_paper.max() == pytest.approx(TRUNC, abs=1e-6) and len(p["z"]) > len(r["z"])
+    assert reach_head_on >= 0.5 * TRUNC - 1e-6  # head-on rays keep samples behind
+    assert n_grazing > 0  # ... and so do grazing ones, down to the floor cos_min
+
+
 def test_plane_normals_face_the_camera(box):
     """(c) Normals of flat box-face pixels are the face's outward normal (which faces the
     camera); every normal is a unit vector facing the camera; an isolated pixel falls back to
