@@ -12,6 +12,7 @@ variance and of the vertex sigma, and the seconds of the probe stage (``estimate
 second run).
 
     PYTHONPATH=. python tools/vertex_sigma_accuracy.py --probes 16 27 32
+    PYTHONPATH=. python tools/vertex_sigma_accuracy.py --set observation.behind=incidence
 """
 
 from __future__ import annotations
@@ -126,6 +127,9 @@ def main(argv=None):
     ap.add_argument("--scenes", nargs="+", default=list(SCENES)[1:], choices=list(SCENES))
     ap.add_argument("--probes", nargs="+", type=int, default=[16, 27, 32])
     ap.add_argument("--vertices", type=int, default=2000, help="vertices sampled per scene")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="config override added to every scene (repeatable), e.g. "
+                         "observation.behind=incidence")
     args = ap.parse_args(argv)
     from bftaichi.backend import init
 
@@ -134,7 +138,7 @@ def main(argv=None):
           "| sigma: p90 | probe s |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in args.scenes:
-        for r in measure(name, SCENES[name], args.probes, args.vertices):
+        for r in measure(name, [*SCENES[name], *args.sets], args.probes, args.vertices):
             print(f"| {r[0]} | {r[1]} | {r[2]} | {r[3]} | {100 * r[4]:.1f} % | "
                   f"{100 * r[5]:.1f} % | {100 * r[6]:.1f} % | {100 * r[7]:.1f} % | "
                   f"{r[8]:.2f} |", flush=True)
