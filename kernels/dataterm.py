@@ -13,7 +13,8 @@ element from one thread.
 
 import taichi as ti
 
-from .funcs import block_row, block_rows, cell_corners, corner, floor_i32, trilinear
+from .funcs import (block_mean_depth, block_row, block_rows, cell_corners, corner, floor_i32,
+                    trilinear)
 from .layout import BLOCK, CENTRE
 from .lookup import band_index
 from .stencil import first_chunk, virtual_iterations
@@ -462,16 +463,7 @@ def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2
         k = ti.static(1 << lv)
         for by, bx in ti.ndrange(dl.shape[0], dl.shape[1]):
             if lv <= levels:
-                lo, hi, total = ti.f32(1e30), ti.f32(0.0), ti.f32(0.0)
-                for dv in range(k):
-                    for du in range(k):
-                        d = depth[by * k + dv, bx * k + du]
-                        lo, hi, total = ti.min(lo, d), ti.max(hi, d), total + d
-                mean = total / ti.static(float(k * k))
-                out = ti.f32(0.0)
-                if lo > 0 and hi - lo <= reach * ti.static(float(k)) * mean:
-                    out = mean
-                dl[by, bx] = out
+                dl[by, bx] = block_mean_depth(depth, by, bx, k, reach)
     for lv in ti.static(range(5)):
         ml = ti.static((m0, m1, m2, m3, m4)[lv])
         dl = ti.static((depth, d1, d2, d3, d4)[lv])

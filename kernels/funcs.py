@@ -6,7 +6,8 @@
   :mod:`kernels.lookup`);
 * :func:`block_rows`, :func:`cell_corners` -- band indices of the 8 corners of a trilinear cell;
 * :func:`corner`, :func:`trilinear` -- the cell corners ``c = 4 ci + 2 cj + ck`` and their
-  trilinear weights.
+  trilinear weights;
+* :func:`block_mean_depth` -- the mean depth of a k x k block of pixels on one surface.
 
 All of them are pure reads: deterministic in any kernel.
 """
@@ -99,3 +100,21 @@ def trilinear(f):
     w = ti.Matrix([[1.0 - f[0], f[0]], [1.0 - f[1], f[1]], [1.0 - f[2], f[2]]], dt=ti.f64)
     return ti.Vector([w[0, ti.static(corner(c)[0])] * w[1, ti.static(corner(c)[1])]
                       * w[2, ti.static(corner(c)[2])] for c in ti.static(range(8))], dt=ti.f64)
+
+
+@ti.func
+def block_mean_depth(depth: ti.template(), by: ti.i32, bx: ti.i32, k: ti.template(),
+                     reach: ti.f32) -> ti.f32:
+    """Mean depth of pixels ``[by k, by k + k) x [bx k, bx k + k)`` of ``depth`` if all are
+    valid (> 0) and lie on one surface (they differ by at most ``k reach mean``; ``reach =
+    tan(max slope) / fx``, a surface inclined by at most that slope), else 0."""
+    lo, hi, total = ti.f32(1e30), ti.f32(0.0), ti.f32(0.0)
+    for dv in range(k):
+        for du in range(k):
+            d = depth[by * k + dv, bx * k + du]
+            lo, hi, total = ti.min(lo, d), ti.max(hi, d), total + d
+    mean = total / ti.static(float(k * k))
+    out = ti.f32(0.0)
+    if lo > 0 and hi - lo <= reach * ti.static(float(k)) * mean:
+        out = mean
+    return out

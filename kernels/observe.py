@@ -499,11 +499,7 @@ class Observer:
         :meth:`integrate`, nothing else is touched. One kernel launch; deterministic."""
         stride = self._check_stride(stride)
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
-        mu = np.ascontiguousarray(mu, np.float32)
-        var = np.ascontiguousarray(var, np.float32)
-        if mu.shape != (self.n_voxels,) or var.shape != (self.n_voxels,):
-            raise ValueError(f"mu {mu.shape} and var {var.shape} must have shape "
-                             f"({self.n_voxels},)")
+        mu, var = self._band_fields(mu, var)
         if self._R_acc is None:
             self._R_acc = zeros_aligned((self.parts, max(self.n_voxels, 1), 3), np.int64)
         if not self.n_voxels:
@@ -511,6 +507,15 @@ class Observer:
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
             misfit_frame(image, mask, prm_l, self.block_keys, self.block_table, self.reference,
                          stride, self.m, self.mf, mu, var, self._R_acc, counts, *scratch)
+
+    def _band_fields(self, mu, var) -> tuple[np.ndarray, np.ndarray]:
+        """``mu``, ``var`` as (N,) float32 (ValueError naming their shapes otherwise)."""
+        mu = np.ascontiguousarray(mu, np.float32)
+        var = np.ascontiguousarray(var, np.float32)
+        if mu.shape != (self.n_voxels,) or var.shape != (self.n_voxels,):
+            raise ValueError(f"mu {mu.shape} and var {var.shape} must have shape "
+                             f"({self.n_voxels},)")
+        return mu, var
 
     def misfit_sums(self) -> np.ndarray:
         """(N, 3) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared

@@ -4,6 +4,7 @@ processes, on real frames (issue 16's targets).
 
     python tools/bench_pipeline.py                          # 500 redkitchen frames, 2 cm and 1 cm
     python tools/bench_pipeline.py --voxels 0.02 --frames 100 --repeats 1
+    python tools/bench_pipeline.py --set observation.model=voxels   # the per-voxel data term
 
 For each voxel size, in one run, alternating ``--repeats`` times (the best of each is kept):
 
@@ -104,12 +105,14 @@ def _report_peak_mib(report: dict) -> float:
     return 0.0 if peak is None else peak / 2.0 ** 20
 
 
-def bench_voxel(data: Path, voxel: float, n: int, repeats: int, tmp: Path) -> dict:
+def bench_voxel(data: Path, voxel: float, n: int, repeats: int, tmp: Path,
+                sets: tuple = ()) -> dict:
     fuse_runs, o3d_runs, stages = [], [], None
+    extra = [a for s in sets for a in ("--set", s)]
     for r in range(repeats):
         out = tmp / f"fuse-{voxel}-{r}"
         run = timed([sys.executable, "-m", "bftaichi.cli", "fuse", str(data), "--voxel",
-                     str(voxel), "--frames", f"0:{n}", "--out", str(out), "-q"])
+                     str(voxel), "--frames", f"0:{n}", "--out", str(out), "-q", *extra])
         report = json.loads((out / "report.json").read_text())
         run["peak_mib"] = max(run["peak_mib"], _report_peak_mib(report))
         run["stages"] = {**report["seconds"], **report["solver"]["seconds"]}
@@ -168,6 +171,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=500, help="the first N frames")
     ap.add_argument("--repeats", type=int, default=2, help="alternating runs of each side")
     ap.add_argument("--json", help="also write the results here")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="a config override for `fuse` (repeatable), e.g. observation.model=voxels")
     args = ap.parse_args(argv)
     try:
         import open3d  # noqa: F401
@@ -180,7 +185,7 @@ def main(argv=None) -> int:
     results = []
     with tempfile.TemporaryDirectory(prefix="bench_pipeline_") as tmp:
         for voxel in (float(v) for v in args.voxels.split(",")):
-            res = bench_voxel(data, voxel, args.frames, args.repeats, Path(tmp))
+            res = bench_voxel(data, voxel, args.frames, args.repeats, Path(tmp), tuple(args.set))
             results.append(res)
             print_result(res)
     if args.json:

@@ -126,6 +126,13 @@ class ObservationConfig:
     frames than this: all of them (the development suite is unchanged). Measured in
     docs/measurements.md."""
 
+    model: str = "rays"
+    """How frames become the data term: ``rays`` (samples along every pixel's ray, each a
+    trilinear row: a 27-point data stencil; :mod:`kernels.observe`) or ``voxels`` (each band
+    voxel looks its frame up once, the depth averaged over its footprint: a diagonal data term
+    whose cost grows with the voxels, not the pixels; :mod:`kernels.voxelobs`). Measured in
+    docs/measurements.md."""
+
     count_once: str = "voxel"
     """How a pixel's samples, which share one depth error, split its information ``1/sigma^2``:
     ``pixel`` gives each of its n samples ``1/n`` (the pixel counts once in all); ``voxel``
@@ -153,6 +160,10 @@ class ObservationConfig:
         check_range("observation.sigma_pose_m", self.sigma_pose_m, 0.0)
         check_range("observation.sigma_model_m", self.sigma_model_m, 0.0)
         check_choice("observation.count_once", self.count_once, ("pixel", "voxel"))
+        check_choice("observation.model", self.model, ("rays", "voxels"))
+        if self.model == "voxels" and self.stride != 1:
+            raise ConfigError(f"observation.stride = {self.stride}: observation.model = "
+                              "'voxels' averages every pixel of a voxel's footprint (stride 1)")
         if self.depth_a_m + self.sigma_pose_m + self.sigma_model_m <= 0:
             raise ConfigError("observation: depth_a_m, sigma_pose_m and sigma_model_m are all 0, "
                               "so a sample would have zero variance (infinite weight)")
@@ -167,17 +178,19 @@ def make_observer(band, obs: ObservationConfig, voxel_size_m: float, trunc_m: fl
     per pixel (added to ``sigma_model_m`` in quadrature). The side gate tests against the
     band's bootstrap TSDF (:attr:`Band.reference`)."""
     from kernels.observe import Observer
+    from kernels.voxelobs import VoxelObserver
 
     corr = min(float(sigma_corr_m), float(sigma_extra_m))
     independent = float(np.sqrt(max(sigma_extra_m ** 2 - corr ** 2, 0.0)))
-    return Observer(band.block_keys, band.block_table, len(band), voxel_size_m, trunc_m,
-                    spacing_m=obs.spacing_voxels * voxel_size_m, depth_a_m=obs.depth_a_m,
-                    depth_b=obs.depth_b, depth_z0_m=obs.depth_z0_m, cos_min=obs.cos_min,
-                    sigma_pose_m=obs.sigma_pose_m,
-                    sigma_model_m=float(np.hypot(obs.sigma_model_m, independent)),
-                    sigma_corr_m=corr, count_once=obs.count_once, front_m=obs.front * trunc_m,
-                    reference=band.reference, gate_m=obs.gate * trunc_m,
-                    aggregate=obs.aggregate, behind_incidence=obs.behind == "incidence")
+    cls = VoxelObserver if obs.model == "voxels" else Observer
+    return cls(band.block_keys, band.block_table, len(band), voxel_size_m, trunc_m,
+               spacing_m=obs.spacing_voxels * voxel_size_m, depth_a_m=obs.depth_a_m,
+               depth_b=obs.depth_b, depth_z0_m=obs.depth_z0_m, cos_min=obs.cos_min,
+               sigma_pose_m=obs.sigma_pose_m,
+               sigma_model_m=float(np.hypot(obs.sigma_model_m, independent)),
+               sigma_corr_m=corr, count_once=obs.count_once, front_m=obs.front * trunc_m,
+               reference=band.reference, gate_m=obs.gate * trunc_m,
+               aggregate=obs.aggregate, behind_incidence=obs.behind == "incidence")
 
 
 def observe(observer, frames, stride: int):
