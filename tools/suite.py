@@ -113,6 +113,9 @@ def judge(report: dict) -> dict:
     u = report.get("uncertainty") or {}
     row = {"cd_tsdf": tsdf["chamfer_l2"], "cd_post": post["chamfer_l2"],
            "f_mm": t, "f_tsdf": tsdf[f"fscore@{t:g}mm"], "f_post": post[f"fscore@{t:g}mm"],
+           # the two halves of CD (metres): mesh to truth, truth to mesh
+           "accuracy_tsdf": tsdf["accuracy_m"], "accuracy_post": post["accuracy_m"],
+           "completeness_tsdf": tsdf["completeness_m"], "completeness_post": post["completeness_m"],
            "seconds": report["seconds"]["total"]}
     for k in ("coverage@1sigma", "coverage@2sigma", "coverage@3sigma", "nll_vs_constant",
               "ause", "top10_ratio", "spearman", "mean_error_m", "median_error_m", "median_sigma_m",
