@@ -207,10 +207,13 @@ def _voxel_frame(levels: ti.i32, blocks: _NDA(dtype=ti.i32, ndim=2),
                  p3: _NDA(dtype=ti.f64, ndim=1), p4: _NDA(dtype=ti.f64, ndim=1),
                  vp: _NDA(dtype=ti.f64, ndim=1), mu: _NDA(dtype=ti.f32, ndim=1),
                  var_post: _NDA(dtype=ti.f32, ndim=1), acc: _NDA(dtype=ti.i64, ndim=2),
-                 counts: _NDA(dtype=ti.i64, ndim=1), mode: ti.template()):
+                 counts: _NDA(dtype=ti.i64, ndim=1), tile_lo: _NDA(dtype=ti.f32, ndim=2),
+                 tile_hi: _NDA(dtype=ti.f32, ndim=2), mode: ti.template()):
     """One frame, every band voxel (module docstring), block by block (``blocks`` (B, 3):
-    the band's blocks, ``block_table`` their voxels' band indices); a block whose bounding
-    sphere lies outside the image is skipped whole. ``mode`` _ACCUMULATE: ``acc`` (2, N)
+    the band's blocks, ``block_table`` their voxels' band indices); a block whose projection
+    lies outside the image, or farther than the reach (plus ``QUICK_SLACK`` voxels) from
+    every depth of the TILE x TILE pixel tiles it covers (``tile_lo``, ``tile_hi``: their
+    smallest and largest valid depth, :func:`_tile_depths`), is skipped whole. ``mode`` _ACCUMULATE: ``acc`` (2, N)
     gets ``w`` and ``w y`` (fixed point); _DIAGONAL: ``acc`` (1, N) gets ``w``; _MISFIT:
     ``acc`` (N, 3) the misfit sums of :meth:`kernels.observe.Observer.misfit_sums` against
     ``mu`` and ``var_post``. Each voxel's entries are written by its own thread (integer
@@ -221,22 +224,42 @@ def _voxel_frame(levels: ti.i32, blocks: _NDA(dtype=ti.i32, ndim=2),
     voxel = 1.0 / p0[P_INV_VOXEL]
     fx, fy, cx, cy = p0[P_K], p0[P_K + 1], p0[P_K + 2], p0[P_K + 3]
     H, W = ti.cast(d0.shape[0], ti.f64), ti.cast(d0.shape[1], ti.f64)
-    radius = ti.static(BLOCK * math.sqrt(3.0) / 2.0)  # voxels: centre to corner of a block
     ti.loop_config(block_dim=4)  # the visible blocks cluster: small chunks balance the threads
     for b in range(blocks.shape[0]):
-        centre = ti.Vector([ti.cast(blocks[b, c] * BLOCK, ti.f64) + BLOCK / 2.0 - 0.5 - p0[P_O + c]
-                            for c in ti.static(range(3))])  # (block centre - t_WC) / voxel
-        pc = R.transpose() @ centre
+        # the box of the block's voxel centres, corner by corner: its projection's bounding
+        # rectangle (pixels) and depth range (metres); a corner behind the camera: no culling
+        u_lo, u_hi, v_lo, v_hi = ti.f64(1e30), ti.f64(-1e30), ti.f64(1e30), ti.f64(-1e30)
+        z_min, z_max = ti.f64(1e30), ti.f64(-1e30)
+        for c in ti.static(range(8)):
+            q = ti.Vector([ti.cast(blocks[b, a] * BLOCK, ti.f64)
+                           + ti.static((BLOCK - 1.0) * ((c >> (2 - a)) & 1)) - p0[P_O + a]
+                           for a in ti.static(range(3))])  # (corner - t_WC) / voxel
+            pc = R.transpose() @ q
+            z_min, z_max = ti.min(z_min, pc[2]), ti.max(z_max, pc[2])
+            if pc[2] > 0:
+                pu, pv = fx * pc[0] / pc[2] + cx, fy * pc[1] / pc[2] + cy
+                u_lo, u_hi = ti.min(u_lo, pu), ti.max(u_hi, pu)
+                v_lo, v_hi = ti.min(v_lo, pv), ti.max(v_hi, pv)
         visible = 1
-        if pc[2] > radius:  # wholly in front of the camera: test the image bounds
-            pu = fx * pc[0] / pc[2] + cx
-            pv = fy * pc[1] / pc[2] + cy
-            reach = radius / (pc[2] - radius)  # tan of the sphere's angular radius, at most
-            if pu + fx * reach < -0.5 or pu - fx * reach > W - 0.5 or \
-                    pv + fy * reach < -0.5 or pv - fy * reach > H - 0.5:
-                visible = 0
-        elif pc[2] < -radius:  # wholly behind
+        if z_max <= 0:  # wholly behind
             visible = 0
+        elif z_min > 0:  # wholly in front: a voxel's nearest pixel lies in the rectangle
+            if u_hi < -0.5 or u_lo > W - 0.5 or v_hi < -0.5 or v_lo > H - 0.5:
+                visible = 0
+            else:  # some tile it covers must hold a depth within reach of the block
+                z_lo = z_min * voxel - vp[V_BEHIND] - QUICK_SLACK * voxel
+                z_hi = z_max * voxel + vp[V_FRONT] + QUICK_SLACK * voxel
+                t_u0 = ti.max(floor_i32((u_lo + 0.5) / TILE), 0)
+                t_u1 = ti.min(floor_i32((u_hi + 0.5) / TILE), tile_lo.shape[1] - 1)
+                t_v0 = ti.max(floor_i32((v_lo + 0.5) / TILE), 0)
+                t_v1 = ti.min(floor_i32((v_hi + 0.5) / TILE), tile_lo.shape[0] - 1)
+                near = 0
+                for tv in range(t_v0, t_v1 + 1):
+                    for tu in range(t_u0, t_u1 + 1):
+                        if ti.cast(tile_hi[tv, tu], ti.f64) >= z_lo and \
+                                ti.cast(tile_lo[tv, tu], ti.f64) <= z_hi:
+                            near = 1
+                visible = near
         if visible:
             for slot in range(BLOCK * BLOCK * BLOCK):
                 i = block_table[b, slot]
@@ -302,6 +325,27 @@ def _block_means(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=
                 dl[by, bx] = block_mean_depth(depth, by, bx, k, reach)
 
 
+#: Pixels a side of the tiles whose depth range culls whole blocks (:func:`_voxel_frame`).
+TILE = 16
+
+
+@ti.kernel
+def _tile_depths(depth: _NDA(dtype=ti.f32, ndim=2), lo: _NDA(dtype=ti.f32, ndim=2),
+                 hi: _NDA(dtype=ti.f32, ndim=2)):
+    """The smallest and largest valid depth of each TILE x TILE tile of ``depth`` (1e30 and 0
+    where it has none). One thread per tile: deterministic."""
+    for ty, tx in lo:
+        a, b = ti.f32(1e30), ti.f32(0.0)
+        for dv in range(TILE):
+            for du in range(TILE):
+                v, u = ty * TILE + dv, tx * TILE + du
+                if v < depth.shape[0] and u < depth.shape[1]:
+                    d = depth[v, u]
+                    if d > 0:
+                        a, b = ti.min(a, d), ti.max(b, d)
+        lo[ty, tx], hi[ty, tx] = a, b
+
+
 class VoxelObserver(Observer):
     """:class:`kernels.observe.Observer` with the per-voxel data term of this module: the same
     arguments, checks and methods (:meth:`integrate`, :meth:`finalize`, :meth:`misfit`,
@@ -361,8 +405,12 @@ class VoxelObserver(Observer):
             levels, images, params = self._pyramid(depth, prm)
             if self._blocks is None:
                 self._blocks = decode_keys(self.block_keys).astype(np.int32)
+            H, W = depth.shape
+            shape = (-(-H // TILE), -(-W // TILE))
+            tile_lo, tile_hi = np.empty(shape, np.float32), np.empty(shape, np.float32)
+            _tile_depths(depth, tile_lo, tile_hi)
             _voxel_frame(levels, self._blocks, self.block_table, self.reference, *images,
-                         *params, self._vparams(), mu, var, acc, counts, mode)
+                         *params, self._vparams(), mu, var, acc, counts, tile_lo, tile_hi, mode)
         return counts, depth
 
     _EMPTY = np.zeros(1, np.float32)
