@@ -68,8 +68,8 @@ VCOUNT_NAMES = ("observations_accepted", "observations_gated", "saturated", "nor
 _ACCUMULATE, _MISFIT, _DIAGONAL = 0, 1, 2
 #: A voxel is looked at closely only where the depth of the pixel nearest its projection puts
 #: it within the reach plus this many voxels (the footprint's depth may differ from that
-#: pixel's by the surface's slope over the footprint): cheap, and on redkitchen at 2 cm it
-#: drops 1.4 % of the observations an unbounded test keeps (surfaces steeper than ~70 deg).
+#: pixel's by the surface's slope over the footprint; the exact test on the footprint's depth
+#: follows). Only a voxel on a surface steeper than this slack over its footprint is lost.
 QUICK_SLACK = 2.0
 
 _NDA = ti.types.ndarray
@@ -398,7 +398,7 @@ class VoxelObserver(Observer):
         params = [self._level_params(prm, 1 << lv) for lv in range(MAX_LEVEL + 1)]
         return levels, images, params
 
-    def _run(self, depth_m, K, T_W_C, sigma_pose_m, mu, var, acc, mode) -> np.ndarray:
+    def _run(self, depth_m, K, T_W_C, sigma_pose_m, mu, var, acc, mode) -> tuple:
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         counts = np.zeros(N_VCOUNTS, np.int64)
         if self.n_voxels:
