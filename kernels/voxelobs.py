@@ -213,8 +213,8 @@ def _voxel_frame(levels: ti.i32, blocks: _NDA(dtype=ti.i32, ndim=2),
     the band's blocks, ``block_table`` their voxels' band indices); a block whose projection
     lies outside the image, or farther than the reach (plus ``QUICK_SLACK`` voxels) from
     every depth of the TILE x TILE pixel tiles it covers (``tile_lo``, ``tile_hi``: their
-    smallest and largest valid depth, :func:`_tile_depths`), is skipped whole. ``mode`` _ACCUMULATE: ``acc`` (2, N)
-    gets ``w`` and ``w y`` (fixed point); _DIAGONAL: ``acc`` (1, N) gets ``w``; _MISFIT:
+    smallest and largest valid depth, :func:`_tile_depths`), is skipped whole. ``mode``
+    _ACCUMULATE: ``acc`` (2, N) gets ``w`` and ``w y`` (fixed point); _DIAGONAL: ``acc`` (1, N) gets ``w``; _MISFIT:
     ``acc`` (N, 3) the misfit sums of :meth:`kernels.observe.Observer.misfit_sums` against
     ``mu`` and ``var_post``. Each voxel's entries are written by its own thread (integer
     sums; the counters are integer reductions): deterministic."""
@@ -429,8 +429,19 @@ class VoxelObserver(Observer):
         self.frames += 1
         return {"pixels_valid": valid, **dict(zip(VCOUNT_NAMES, counts.tolist()))}
 
-    def frame_rows(self, *args, **kwargs):
-        raise NotImplementedError("frame_rows: the per-voxel model has no sample rows")
+    def frame_rows(self, depth_m, K, T_W_C, stride: int = 1, sigma_pose_m=None) -> dict:
+        """One frame's observations, one row per observed voxel (a voxel has one row with
+        weight 1 at itself), accumulating nothing: ``idx`` (R,) int64 band indices, ``y`` (R,)
+        metres, ``w`` (R,) 1/metre^2, and ``counts``. For tests and debugging."""
+        if self._check_stride(stride) != 1:
+            raise ValueError("observation.model = 'voxels' uses every pixel: stride must be 1")
+        acc = np.zeros((2, max(self.n_voxels, 1)), np.int64)
+        counts, _ = self._run(depth_m, K, T_W_C, sigma_pose_m, self._EMPTY, self._EMPTY, acc,
+                              _ACCUMULATE)
+        idx = np.flatnonzero(acc[0, :self.n_voxels] > 0)
+        w, wy = acc[0, idx] / self.fixed_scale, acc[1, idx] / self.fixed_scale
+        return {"idx": idx, "y": wy / w, "w": w,
+                "counts": dict(zip(VCOUNT_NAMES, counts.tolist()))}
 
     def misfit(self, depth_m, K, T_W_C, mu, var, stride: int = 1, sigma_pose_m=None) -> None:
         """The misfit sums of one frame against ``mu`` / ``var`` (N,) (as Observer.misfit)."""

@@ -96,6 +96,10 @@ def test_sums_are_exact_deterministic_and_order_free(box):
     S1, _ = one_frame(b, f)
     assert np.array_equal(b.information(f.depth_m, f.K, f.T_W_C), b.diagonal())
     assert np.array_equal(b.diagonal().astype(np.float32), S1[:, CENTRE])
+    rows = b.frame_rows(f.depth_m, f.K, f.T_W_C)  # the same observations, one row per voxel
+    assert np.array_equal(rows["idx"], np.flatnonzero(S1[:, CENTRE] > 0))
+    np.testing.assert_allclose(rows["y"], b._data_term()[1][rows["idx"]] / b.fixed_scale
+                               / rows["w"], rtol=1e-12)
 
 
 def test_a_frame_tells_a_voxel_at_most_its_correlated_noise(box):
