@@ -169,7 +169,7 @@ class Observer:
         sigma_model_m: model noise (planar approximation, discretisation), metres.
         normal_radius_px: tangent offset r of the normal estimate, pixels (module docstring).
         count_once: how a pixel's shared depth error is counted (no default): ``"pixel"``,
-            its samples share one ``1 / sigma^2``; ``"voxel"``, each voxel gets about one
+            its samples share one ``1 / sigma^2``; ``"voxel"``, each voxel gets at most one
             pixel's information (see the constructor's comment).
         front_m: how far in front of the measured surface the samples reach, metres (>=
             ``trunc_m``, no default; ``trunc_m``: as far as behind). Samples there observe
@@ -208,11 +208,15 @@ class Observer:
         if count_once not in ("pixel", "voxel"):
             raise ValueError(f"Observer: count_once = {count_once!r} is not 'pixel' or 'voxel'")
         # "pixel": the n_acc samples of a pixel share its 1/sigma^2 (w = 1 / (n_acc sigma^2)).
-        # "voxel": each voxel gets about one pixel's information: only the samples in the two
-        # cells around a voxel along the ray (ceil(2 voxel / spacing) of them) share the depth
-        # error there, so w = 1 / (min(n_acc, share) sigma^2).
+        # "voxel": each voxel gets at most one pixel's information. The trilinear weights a
+        # ray's samples put on one voxel sum to at most about voxel / spacing (the hat function
+        # integrated along a line: 1 on an axis, 0.87 on a diagonal), so with
+        # w = 1 / (min(n_acc, share) sigma^2), share = ceil(voxel / spacing), a voxel's share
+        # of the pixel, sum_k w a_k^2 <= sum_k w a_k, is at most 1 / sigma^2. (Dividing by the
+        # two samples that reach a voxel, as before, counted each pixel half in every voxel:
+        # the vertex sigma was ~1.5x its errors on smooth surfaces; docs/measurements.md.)
         self.count_once = count_once
-        self.share = (float(math.ceil(2.0 * self.voxel_size / self.spacing_m - 1e-9))
+        self.share = (float(math.ceil(self.voxel_size / self.spacing_m - 1e-9))
                       if count_once == "voxel" else 1e30)
         values = {"voxel_size": self.voxel_size, "trunc_m": self.trunc_m,
                   "spacing_m": self.spacing_m, "cos_min": cos_min,

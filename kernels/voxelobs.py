@@ -30,9 +30,8 @@ Here every band voxel ``i`` (centre ``x_i``, camera point ``p = R_WC^T (x_i - t_
    sigma_model^2`` (the observe model's); the footprint's ``n_pix`` pixels average it down,
    and the frame's shared error ``sigma_corr^2`` does not: ``var = sigma^2 / n_pix +
    sigma_corr^2``. The same depth error reaches every voxel along the ray; as ``count_once =
-   "voxel"`` says, the two voxels around the zero crossing share it: ``w = 1 / (share var)``,
-   ``share = 2`` (``count_once = "pixel"``: the voxels the ray's reach spans, ``(front_m +
-   tau) / voxel``).
+   "voxel"`` says, each voxel counts it once: ``w = 1 / (share var)``, ``share = 1``
+   (``count_once = "pixel"``: the voxels the ray's reach spans, ``(front_m + tau) / voxel``).
 6. **Side gate**, as in :mod:`kernels.observe` step 3b, on the voxel's own reference value.
 7. **Accumulation**: ``Q_ii += w``, ``h_i += w y`` (a diagonal data term), in int64 fixed
    point (the Observer's scale): one thread per voxel, so each sum is written by one thread,
@@ -375,7 +374,7 @@ class VoxelObserver(Observer):
         return self.acc
 
     def _vparams(self) -> np.ndarray:
-        share = (2.0 if self.count_once == "voxel"
+        share = (1.0 if self.count_once == "voxel"
                  else max(1.0, (self.front_m + self.trunc_m) / self.voxel_size))
         return np.array([self.front_m, self.trunc_m, share, self.gate_m,
                          float(self.behind_incidence), self.fixed_scale], np.float64)

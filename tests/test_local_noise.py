@@ -59,13 +59,14 @@ def _sigma_and_error(post):
 def test_misregistered_frames_sigma_still_covers_the_error(runs):
     """Half the frames are 6 mm off: the surface error grows (median ~1.2 mm, 2.6x the clean
     one), and the data around it disagree. Without local_noise sigma does not notice (2-sigma
-    coverage ~78 %); with it, the excess residual enters sigma (~98 %)."""
+    coverage ~78 %); with it, the excess residual enters sigma (~92 %, within issue 15's 90-98 %
+    target)."""
     s_on, e_on = _sigma_and_error(runs["shifted", True])
     s_off, e_off = _sigma_and_error(runs["shifted", False])
     np.testing.assert_array_equal(e_on, e_off)  # the same mesh: only sigma changes
     assert np.median(e_on) > 2.0 * np.median(_sigma_and_error(runs["clean", True])[1])
     assert np.mean(e_off <= 2 * s_off) < 0.85
-    assert np.mean(e_on <= 2 * s_on) >= 0.92
+    assert np.mean(e_on <= 2 * s_on) >= 0.90
     stats = runs["shifted", True].variance["local_noise"]
     assert stats["p90_b_m"] > 1.5 * runs["clean", True].variance["local_noise"]["p90_b_m"]
 

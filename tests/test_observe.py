@@ -311,10 +311,11 @@ def test_each_pixel_counts_its_information_once(box):
     np.testing.assert_allclose(S.astype(np.float64).sum(), total_info, rtol=1e-5)
 
 
-def test_count_once_per_voxel_shares_a_pixel_among_at_most_two_samples(box):
-    """count_once="voxel": a pixel's samples get 1 / (min(n_acc, ceil(2 voxel / spacing)) sigma^2)
-    instead of 1 / (n_acc sigma^2), i.e. w_voxel / w_pixel = n_acc / min(n_acc, 2) at 1-voxel
-    spacing; rows, values and everything else are unchanged."""
+def test_count_once_per_voxel_gives_each_voxel_at_most_one_pixel(box):
+    """count_once="voxel" at 1-voxel spacing: every sample carries its pixel's whole 1/sigma^2
+    (w_voxel / w_pixel = n_acc, rows and values unchanged), and still no voxel gets more than
+    about one pixel's information from a pixel: sum_k w_k a_k^2 <= sum_k w_k a_k ~ 1/sigma^2,
+    because the trilinear weights a ray's samples put on one voxel sum to about 1 at most."""
     band, frames = box
     frame = frames[0]
     per_pixel = band.observer().frame_rows(frame.depth_m, frame.K, frame.T_W_C)
@@ -324,7 +325,19 @@ def test_count_once_per_voxel_shares_a_pixel_among_at_most_two_samples(box):
     _, inverse, n_acc = np.unique(per_pixel["pixel"], return_inverse=True, return_counts=True)
     n = n_acc[inverse].astype(np.float64)
     assert (n > 2).any()
-    np.testing.assert_allclose(per_voxel["w"] / per_pixel["w"], n / np.minimum(n, 2), rtol=1e-12)
+    np.testing.assert_allclose(per_voxel["w"] / per_pixel["w"], n, rtol=1e-12)
+    # per (pixel, voxel): the weights its samples put there, and the information they carry
+    pair = per_voxel["pixel"][:, None] * (int(per_voxel["idx"].max()) + 1) + per_voxel["idx"]
+    keys, at = np.unique(pair.ravel(), return_inverse=True)
+    a = per_voxel["a"].ravel()
+    sum_a = np.bincount(at, weights=a, minlength=len(keys))
+    info = np.bincount(at, weights=(per_voxel["w"][:, None] * per_voxel["a"] ** 2).ravel(),
+                       minlength=len(keys))
+    inv_var = np.zeros(len(keys))
+    np.maximum.at(inv_var, at, np.repeat(per_voxel["w"], 8))
+    # samples of an oblique ray (1 voxel apart in camera z) sum the hat to 1 up to a few %
+    assert 0.9 < sum_a.max() <= 1.05
+    assert (info <= 1.05 * inv_var).all()
 
 
 def test_accumulation_is_deterministic_and_order_free(sphere):

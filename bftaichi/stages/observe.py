@@ -139,10 +139,11 @@ class ObservationConfig:
     count_once: str = "voxel"
     """How a pixel's samples, which share one depth error, split its information ``1/sigma^2``:
     ``pixel`` gives each of its n samples ``1/n`` (the pixel counts once in all); ``voxel``
-    gives each sample ``1/min(n, ceil(2 voxel / spacing))`` (the pixel counts about once in each
-    voxel's estimate, since only the samples in the two cells around a voxel reach it). Counting
-    the same error n times would make sigma overconfident; dividing by n made it too
-    conservative (docs/measurements.md)."""
+    gives each sample ``1/min(n, ceil(voxel / spacing))`` (the pixel counts at most once in each
+    voxel's estimate: the trilinear weights its samples put on one voxel sum to at most about
+    one per voxel of spacing). Dividing by n made sigma about 2x too conservative; dividing
+    by the two samples that reach a voxel (the rule until issue 15's share fix) about 1.5x on
+    smooth surfaces (docs/measurements.md)."""
 
     def axial_sigma_m(self, depth_m):
         """The axial depth noise ``a + b (D - z0)^2`` (metres) at depth ``depth_m`` (float or
