@@ -32,6 +32,7 @@ Here every band voxel ``i`` (centre ``x_i``, camera point ``p = R_WC^T (x_i - t_
    sigma_corr^2``. The same depth error reaches every voxel along the ray; as ``count_once =
    "voxel"`` says, each voxel counts it once: ``w = 1 / (share var)``, ``share = 1``
    (``count_once = "pixel"``: the voxels the ray's reach spans, ``(front_m + tau) / voxel``).
+   Measured against ``share = 2`` in docs/measurements.md.
 6. **Side gate**, as in :mod:`kernels.observe` step 3b, on the voxel's own reference value.
 7. **Accumulation**: ``Q_ii += w``, ``h_i += w y`` (a diagonal data term), in int64 fixed
    point (the Observer's scale): one thread per voxel, so each sum is written by one thread,

@@ -6,7 +6,7 @@ in-process and its mesh judged against the exact vertex errors (libigl, as the s
 median and the RMS of the errors against those of sigma (a Gaussian sigma has ``median |e| =
 0.674 sigma`` and ``RMS e = sigma``), the coverage at 1 / 2 / 3 sigma, and, on the voxels
 within one voxel of the mean's surface, what the variance is made of: the probe variance
-before the local-noise step, its scale, and the misfit term ``b^2`` (bftaichi/stages/
+before the local-noise step, the data's median chi2 there, and the misfit term ``b^2`` (bftaichi/stages/
 bandsolve.py); and the 5 % largest errors against the rest (:func:`tail`)::
 
     python tools/sigma_breakdown.py homer few_views
@@ -57,9 +57,9 @@ def main(argv=None) -> int:
     local_misfit = bandsolve.local_misfit
 
     def spy(observer, frames, mean, var, nbr, stride):  # the variance before the local noise
-        scale, b2, stats = local_misfit(observer, frames, mean, var, nbr, stride)
-        seen.update(var0=np.array(var, np.float64), scale=scale, b2=b2)
-        return scale, b2, stats
+        b2, stats = local_misfit(observer, frames, mean, var, nbr, stride)
+        seen.update(var0=np.array(var, np.float64), b2=b2, chi2=stats["median_chi2"])
+        return b2, stats
 
     bandsolve.local_misfit = spy
     frames = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)
@@ -86,8 +86,8 @@ def main(argv=None) -> int:
         near = np.abs(post.mean) < cfg.tsdf.voxel_size_m
         v0, b2 = seen["var0"][near], seen["b2"][near].astype(np.float64)
         print(f"  {int(near.sum())} voxels within a voxel of the surface: sqrt(probe variance) "
-              f"median {np.median(np.sqrt(v0)) * mm:.3f} mm, local-noise scale median "
-              f"{np.median(seen['scale'][near]):.3f}, b^2 > 0 on {100 * np.mean(b2 > 0):.0f} %, "
+              f"median {np.median(np.sqrt(v0)) * mm:.3f} mm, the data's chi2 median (band) "
+              f"{seen['chi2']:.3f}, b^2 > 0 on {100 * np.mean(b2 > 0):.0f} %, "
               f"b^2 / final variance median {np.median(b2 / post.var[near]):.2f}")
     print(f"  fitted noise: extra {post.sigma_extra_m * mm:.3f} mm, shared {post.sigma_corr_m * mm:.3f} mm")
     tail(mesh, err, sigma, gt)

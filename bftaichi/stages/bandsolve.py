@@ -50,19 +50,19 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
                                             probes=variance)
     lap("variance")
-    if o.local_noise:  # noise part scaled, model error b^2 (correlated) added
+    if o.local_noise:  # the model error b^2 (fully correlated between neighbours) added
         picked = FramePicks(frames, o.misfit_frames)
-        scale, b2, misfit = local_misfit(observer, frame_iter(picked, "misfit") if frame_iter
-                                         else picked, mean, var, band.nbr, o.stride)
+        b2, misfit = local_misfit(observer, frame_iter(picked, "misfit") if frame_iter
+                                  else picked, mean, var, band.nbr, o.stride)
         misfit["frames"] = len(picked)
-        var = var * scale + b2
+        var = var + b2
         if variance:
             from kernels.probes import FACE_PLUS
 
-            g, b = np.sqrt(scale), np.sqrt(b2)
+            b = np.sqrt(b2)
             for e, off in enumerate(FACE_PLUS):
                 j = np.maximum(band.nbr[:, off], 0)
-                cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] * g * g[j] + b * b[j], 0)
+                cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] + b * b[j], 0)
         var_stats = dict(var_stats, local_noise=misfit)
         lap("misfit")
     return {"mean": mean, "var": np.asarray(var, np.float32),

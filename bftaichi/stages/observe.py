@@ -101,10 +101,12 @@ class ObservationConfig:
     local_noise: bool = True
     """Judge the noise model against the data around each voxel after the solve
     (:func:`local_misfit`: a second pass over the frames compares every sample with the
-    posterior mean) and correct the variance there: scaled down where the data are quieter
-    than the model, plus the excess ``b^2`` where they disagree (thin sheets, occlusion edges,
-    creases finer than a voxel, misregistered frames), which does not average down over
-    pixels. That is where the surface errors are. report.json: ``solver.variance.local_noise``.
+    posterior mean) and add the excess ``b^2`` where they disagree more than the noise model
+    explains (thin sheets, occlusion edges, creases finer than a voxel, misregistered frames),
+    which does not average down over pixels. That is where the surface errors are. Where the
+    data are quieter than the model the variance is left as it is (scaling it down by that
+    ratio, as until issue 15's share fix, made sigma too small on the noisy and dense captures:
+    docs/measurements.md). report.json: ``solver.variance.local_noise``.
     """
 
     aggregate: float = 0.5
@@ -216,35 +218,35 @@ def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.nd
     model expects of them (their noise variance less the part the fit absorbs,
     :meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its 26
     neighbours (a 3-voxel window: a few pixels per voxel are too few for a variance). Their
-    ratio ``chi2`` (mean squared residual over its expectation) splits two ways:
+    ratio ``chi2`` (mean squared residual over its expectation) tells:
 
-    - ``chi2 < 1``: the data are quieter than the noise model says (its sigma is an upper
-      bound: the incidence angle, the sensor); the noise part of the posterior variance is
-      scaled by ``chi2``;
     - ``chi2 > 1``: the data disagree with each other and with any surface the voxels can hold
       (thin sheets seen from both sides, occlusion edges, creases finer than a voxel,
       misregistered frames). The excess ``b^2 = mean r^2 - expected`` does not average down
       over the pixels: it is a bias of the mean there, added to the variance as it is.
+    - ``chi2 < 1``: the data are quieter than the noise model says; the variance is kept. The
+      ratio is an average over every sample in the window, and the quiet ones are mostly
+      oblique pixels, whose modelled noise is floored (``cos_min``) and whose fitted extra
+      noise is taken as isotropic, while the posterior variance is set mostly by the head-on
+      pixels, which the model gets right; scaling the variance by it made sigma too small
+      (docs/measurements.md).
 
-    A voxel reached by less than one pixel's worth of samples in its window keeps its
-    variance (scale 1, ``b = 0``).
+    A voxel reached by less than one pixel's worth of samples in its window gets ``b = 0``.
 
-    Returns ``(scale, b2, stats)``: (N,) float32 (no unit; metres^2) and ``voxels`` (with an
-    estimate), ``median_scale``, ``voxels_misfit`` (``b > 0``), ``p90_b_m``.
+    Returns ``(b2, stats)``: (N,) float32 metres^2, and ``voxels`` (with an estimate),
+    ``median_chi2`` (a diagnostic), ``voxels_misfit`` (``b > 0``), ``p90_b_m``.
     """
     for frame in frames:
         observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, var, stride=stride)
     window = observer.misfit_window(nbr)  # (N, 3) over the 27 voxels around each
     ok = window[:, 2] >= 1.0
-    scale = np.ones(len(mean), np.float64)
     b2 = np.zeros(len(mean), np.float64)
     r2, expected = window[ok, 0] / window[ok, 2], window[ok, 1] / window[ok, 2]
-    scale[ok] = np.minimum(1.0, r2 / expected)
     b2[ok] = np.maximum(0.0, r2 - expected)
     stats = {"voxels": int(ok.sum()), "voxels_misfit": int(np.count_nonzero(b2 > 0)),
-             "median_scale": float(np.median(scale[ok])) if ok.any() else None,
+             "median_chi2": float(np.median(r2 / expected)) if ok.any() else None,
              "p90_b_m": float(np.sqrt(np.percentile(b2[ok], 90))) if ok.any() else None}
-    return scale.astype(np.float32), b2.astype(np.float32), stats
+    return b2.astype(np.float32), stats
 
 
 class FramePicks:
