@@ -212,7 +212,7 @@ class Observer:
         # ray's samples put on one voxel sum to at most about voxel / spacing (the hat function
         # integrated along a line: 1 on an axis, 0.87 on a diagonal), so with
         # w = 1 / (min(n_acc, share) sigma^2), share = ceil(voxel / spacing), a voxel's share
-        # of the pixel, sum_k w a_k^2 <= sum_k w a_k, is at most 1 / sigma^2. (Dividing by the
+        # of the pixel, sum_k w a_k^2 <= sum_k w a_k, is at most about 1 / sigma^2. (Dividing by the
         # two samples that reach a voxel, as before, counted each pixel half in every voxel:
         # the vertex sigma was ~1.5x its errors on smooth surfaces; docs/measurements.md.)
         self.count_once = count_once
