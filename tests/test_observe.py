@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from bftaichi.config import SyntheticConfig
 from bftaichi.formats.synthetic import SyntheticDataset
 from kernels.lookup import build_block_table
+from kernels.dataterm import MISFIT_NEAR
 from kernels.layout import stencil_offset
 from kernels.observe import Observer
 
@@ -479,8 +480,8 @@ def test_misfit_sums_match_a_reference_built_from_the_rows(sphere, count_once):
     """The misfit pass (which looks up only the samples near the surface, and the others only
     until a pixel's share is settled) sums exactly what the rows of the data term give: per
     corner, a_c s min(r^2, 100 sigma^2), a_c s max(sigma^2 - p, 0.1 sigma^2) and a_c s over the
-    accepted samples with |y| < one voxel; r = y - a . mu, p = sum a_c^2 var_c, sigma^2 the
-    sample's pixel noise, s its share of the pixel."""
+    accepted samples with |y| < MISFIT_NEAR voxels; r = y - a . mu, p = sum a_c^2 var_c,
+    sigma^2 the sample's pixel noise, s its share of the pixel."""
     band, frames = sphere
     rng = np.random.default_rng(3)
     centres = (band.ijk + 0.5) * VOXEL
@@ -499,7 +500,7 @@ def test_misfit_sums_match_a_reference_built_from_the_rows(sphere, count_once):
             n_share = np.minimum(n_share, obs.share)
         sigma2 = 1.0 / (rows["w"] * n_share)
         s = 1.0 / n_share
-        near = np.abs(rows["y"]) < VOXEL
+        near = np.abs(rows["y"]) < MISFIT_NEAR * VOXEL
         a, idx = rows["a"][near], rows["idx"][near]
         r = rows["y"][near] - (a * mu[idx]).sum(axis=1)
         p = (a ** 2 * var[idx]).sum(axis=1)

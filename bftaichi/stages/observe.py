@@ -212,7 +212,7 @@ def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.nd
     """How well the noise model explains the data around each band voxel.
 
     Every frame is observed again (same samples and weights as the data term) against the
-    posterior mean; the samples within one voxel of their pixel's measured surface count
+    posterior mean; the samples within 1.5 voxels of their pixel's measured surface count
     (``kernels.dataterm.MISFIT_NEAR``): they fix the zero crossing, where the vertices lie,
     while farther ones carry the projective distance's own model error. Per voxel, the squared residuals of the pixels reaching it and what the
     model expects of them (their noise variance less the part the fit absorbs,
