@@ -214,9 +214,10 @@ def _voxel_frame(levels: ti.i32, blocks: _NDA(dtype=ti.i32, ndim=2),
     lies outside the image, or farther than the reach (plus ``QUICK_SLACK`` voxels) from
     every depth of the TILE x TILE pixel tiles it covers (``tile_lo``, ``tile_hi``: their
     smallest and largest valid depth, :func:`_tile_depths`), is skipped whole. ``mode``
-    _ACCUMULATE: ``acc`` (2, N) gets ``w`` and ``w y`` (fixed point); _DIAGONAL: ``acc`` (1, N) gets ``w``; _MISFIT:
-    ``acc`` (N, 3) the misfit sums of :meth:`kernels.observe.Observer.misfit_sums` against
-    ``mu`` and ``var_post``. Each voxel's entries are written by its own thread (integer
+    _ACCUMULATE: ``acc`` (2, N) gets ``w`` and ``w y`` (fixed point); _DIAGONAL: ``acc``
+    (1, N) gets ``w``; _MISFIT: ``acc`` (N, 3) the misfit sums of
+    :meth:`kernels.observe.Observer.misfit_sums` against ``mu`` and ``var_post``. Each voxel's
+    entries are written by its own thread (integer
     sums; the counters are integer reductions): deterministic."""
     scale = vp[V_SCALE]
     R = ti.Matrix([[p0[P_R + 3 * r + c] for c in ti.static(range(3))]
@@ -415,11 +416,16 @@ class VoxelObserver(Observer):
 
     _EMPTY = np.zeros(1, np.float32)
 
+    @staticmethod
+    def _check_stride(stride) -> int:
+        if Observer._check_stride(stride) != 1:
+            raise ValueError("observation.model = 'voxels' uses every pixel: stride must be 1")
+        return 1
+
     def integrate(self, depth_m, K, T_W_C, stride: int = 1, sigma_pose_m=None) -> dict:
         """Add one frame's per-voxel observations; return its counts. ``stride`` must be 1
         (the footprint average uses every pixel)."""
-        if self._check_stride(stride) != 1:
-            raise ValueError("observation.model = 'voxels' uses every pixel: stride must be 1")
+        self._check_stride(stride)
         acc = self._data_term()
         counts, depth = self._run(depth_m, K, T_W_C, sigma_pose_m, self._EMPTY, self._EMPTY,
                                   acc, _ACCUMULATE)
@@ -433,8 +439,7 @@ class VoxelObserver(Observer):
         """One frame's observations, one row per observed voxel (a voxel has one row with
         weight 1 at itself), accumulating nothing: ``idx`` (R,) int64 band indices, ``y`` (R,)
         metres, ``w`` (R,) 1/metre^2, and ``counts``. For tests and debugging."""
-        if self._check_stride(stride) != 1:
-            raise ValueError("observation.model = 'voxels' uses every pixel: stride must be 1")
+        self._check_stride(stride)
         acc = np.zeros((2, max(self.n_voxels, 1)), np.int64)
         counts, _ = self._run(depth_m, K, T_W_C, sigma_pose_m, self._EMPTY, self._EMPTY, acc,
                               _ACCUMULATE)

@@ -6,8 +6,9 @@ in-process and its mesh judged against the exact vertex errors (libigl, as the s
 median and the RMS of the errors against those of sigma (a Gaussian sigma has ``median |e| =
 0.674 sigma`` and ``RMS e = sigma``), the coverage at 1 / 2 / 3 sigma, and, on the voxels
 within one voxel of the mean's surface, what the variance is made of: the probe variance
-before the local-noise step, the data's median chi2 there, and the misfit term ``b^2`` (bftaichi/stages/
-bandsolve.py); and the 5 % largest errors against the rest (:func:`tail`)::
+before the local-noise step and the misfit term ``b^2`` (bftaichi/stages/bandsolve.py), with
+the data's median chi2 over the band; and the 5 % largest errors against the rest
+(:func:`tail`)::
 
     python tools/sigma_breakdown.py homer few_views
     python tools/sigma_breakdown.py stanford-bunny sparse_far --set prior.curvature=0.5
