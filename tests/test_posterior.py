@@ -142,9 +142,7 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     from bftaichi.running.pipeline import open_frames
     from bftaichi.stages.prior import System
     from bftaichi.stages.solve import solve_map
-    from conftest import posterior_system, solved
-    from kernels.pcg import pcg
-    from kernels.stencil import apply_Q
+    from conftest import posterior_system, pulled_inside, solved
 
     # every pixel on its own (observation.aggregate=0); even so 4 of the 7071 free voxels,
     # out at the band's edge and seen by one frame, end below half a voxel without the
@@ -162,11 +160,7 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     assert (band.weight[low] <= 1).all()
     # straddling samples: a strong pull to -tau on a few free voxels
     hit = free[:: len(free) // 12][:12]
-    h = apply_Q(S, nbr, post.mean, far=far).astype(np.float32)  # Q mu = h at the MAP
-    c = np.float32(1000.0 / vs ** 2)
-    S[hit, 13] += c
-    h[hit] += c * np.float32(-tau)
-    bent, info = pcg(S, nbr, h, post.mean, tol=1e-8, maxiter=2000, far=far)
+    h, bent = pulled_inside(S, nbr, far, post.mean, hit, tau, vs)
     assert (bent[hit] < 0).sum() >= 6  # false surfaces in free space
     cfg.solver.tol = 1e-8
     fixed, info = solve_map(System(S=S, nbr=nbr, h=h, far=far), bent, cfg.solver, band,

@@ -37,15 +37,25 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     lap("noise")
     observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"],            # step 3
                              noise["sigma_corr_m"])
+    free_space = None
+    if cfg.prior.free > 0 and cfg.prior.carve > 0:
+        from kernels.carve import FreeSpaceCounter
+
+        free_space = FreeSpaceCounter(band.ijk, vs, cfg.tsdf.bootstrap_trunc_m)
     S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
-                                else frames, o.stride)
+                                else frames, o.stride, free_space)
+    carved = None
+    if free_space is not None:  # seen as free space by at least `carve` of its frames, and 2
+        n_carved = free_space.carved()
+        carved = band.observed & (n_carved >= 2) & (n_carved >= cfg.prior.carve
+                                                    * free_space.observing())
     observer.release()  # the misfit pass below needs only its lookups
     lap("observe")
     system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
     lap("prior")
     mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
                                 voxel_size_m=vs, free=cfg.prior.free,
-                                prior=cfg.prior)
+                                prior=cfg.prior, carved=carved)
     lap("map")
     var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
                                             probes=variance)

@@ -199,11 +199,15 @@ def make_observer(band, obs: ObservationConfig, voxel_size_m: float, trunc_m: fl
                aggregate=obs.aggregate, behind_incidence=obs.behind == "incidence")
 
 
-def observe(observer, frames, stride: int):
-    """Feed every frame to ``observer`` (pixel ``stride``); return its ``(S, h, stats)``:
-    the data term's stencil (N, 27) float32, ``A^T W y`` (N,) and the sample counts."""
+def observe(observer, frames, stride: int, free_space=None):
+    """Feed every frame to ``observer`` (pixel ``stride``) and, when given, to ``free_space``
+    (a :class:`kernels.carve.FreeSpaceCounter`, in the same pass: frames are read once);
+    return the observer's ``(S, h, stats)``: the data term's stencil (N, 27) float32,
+    ``A^T W y`` (N,) and the sample counts."""
     for frame in frames:
         observer.integrate(frame.depth_m, frame.K, frame.T_W_C, stride=stride)
+        if free_space is not None:
+            free_space.add(frame.depth_m, frame.K, frame.T_W_C)
     return observer.finalize()
 
 

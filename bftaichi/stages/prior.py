@@ -42,6 +42,16 @@ class PriorConfig:
     and the MAP is solved again. 1000 per voxel^2 is about the data term of 40 frames at 2 cm;
     10 was too weak to hold the voxels against straddling samples."""
 
+    carve: float = 0.4
+    """Free space seen by the rays (0 = off): a voxel also counts as free space for the
+    constraint above when at least this fraction of the frames that observe it, and at least
+    two, saw it farther than the bootstrap truncation in front of their measured surface (the
+    rays passed through it; :mod:`kernels.carve`, counted in the observation pass). The
+    averaged TSDF alone misses the voxels beside thin parts and in gaps narrower than the
+    truncation, which other frames place behind a surface: the data term, which samples only
+    near each pixel's surface, then bent the posterior through zero there (surfaces bridged
+    across gaps, thin parts fattened). Measured in docs/measurements.md."""
+
     curvature_scale: float = 0.0
     """Scale ``c`` of the robust curvature prior, in voxels (0 = the Gaussian prior). With
     ``c > 0`` each second difference ``d`` costs ``lam2 c^2 log(1 + d^2 / c^2)`` instead of
@@ -66,6 +76,7 @@ class PriorConfig:
         check_range("prior.curvature_scale", self.curvature_scale, 0.0, 100.0)
         check_range("prior.lam_b", self.lam_b, 0.0)
         check_range("prior.free", self.free, 0.0)
+        check_range("prior.carve", self.carve, 0.0, 1.0)
         check_choice("prior.anchors", self.anchors, ("none", "boundary", "all"))
         check_range("prior.eps", self.eps, 0.0, lo_open=True)
 

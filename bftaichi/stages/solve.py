@@ -52,12 +52,17 @@ ROBUST_PASSES = 2
 
 def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: float,
               voxel_size_m: float, free: float, passes: int = 4, prior=None,
-              ) -> tuple[np.ndarray, dict]:
+              carved: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """The MAP of ``system`` (:class:`~.prior.System`) from ``x0``, then the free-space
-    inequality: a voxel the bootstrap saw as free (observed, ``tsdf > trunc_m``) whose mean fell
-    below half a voxel is anchored to its TSDF value with strength ``free`` per voxel^2 (in
+    inequality: a voxel the bootstrap saw as free (observed, ``tsdf > trunc_m``), or one the
+    rays carved (``carved``, (N,) bool: :class:`kernels.carve.FreeSpaceCounter`), whose mean
+    fell below half a voxel is anchored to its TSDF value, at least half a voxel (a carved
+    voxel's average may be negative), with strength ``free`` per voxel^2 (in
     ``system.S`` and ``system.h``, in place) and the MAP is solved again, warm-started, up to
-    ``passes`` times (``free = 0``: no constraint). With ``prior`` (the
+    ``passes`` times (``free = 0``: no constraint). The anchors are taken out of ``system``
+    again at the end: they enforce an inequality on the mean and are no measurement, so the
+    variance (step 6) is that of the data and the prior (an anchored voxel next to a vertex
+    made its sigma ~30x too small). With ``prior`` (the
     :class:`~.prior.PriorConfig` of ``system``) and ``prior.curvature_scale > 0``, the robust
     curvature prior is reweighted at the mean and the MAP solved again, :data:`ROBUST_PASSES`
     times, each followed by the free-space passes. Returns ``(mean, stats)``: ``converged``,
@@ -81,6 +86,9 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     mean, info = solve(x0)
     iterations, n_pass, n_free, n_anchored = info["iterations"], 0, 0, 0
     free_mask = band.observed & (band.tsdf > trunc_m)
+    if carved is not None:
+        free_mask |= carved
+    target = np.maximum(band.tsdf, np.float32(0.5 * voxel_size_m))  # = tsdf where tsdf > tau
     active = np.zeros(len(band), bool)
     k = np.float32(free / voxel_size_m ** 2)
     reweight = prior is not None and prior.curvature > 0 and prior.curvature_scale > 0
@@ -102,15 +110,20 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
                 break
             active |= viol
             S[viol, CENTRE] += k
-            h[viol] += k * band.tsdf[viol]
+            h[viol] += k * target[viol]
             compact.set_diagonal(S[:, CENTRE])
             mean, info = solve(mean)
             iterations += info["iterations"]
     if free > 0:
         n_free, n_anchored = int(free_mask.sum()), int(active.sum())
+    # the anchors enforce an inequality on the mean; they are not measurements, so the
+    # variance (step 6, on the same system) is that of the data and the prior without them
+    S[active, CENTRE] -= k
+    h[active] -= k * target[active]
     stats = {"converged": info["converged"], "iterations": iterations,
              "relative_residual": info["relative_residual"]}
-    stats["free_space"] = {"passes": n_pass, "anchored": n_anchored, "free_voxels": n_free}
+    stats["free_space"] = {"passes": n_pass, "anchored": n_anchored, "free_voxels": n_free,
+                           "carved_voxels": int(carved.sum()) if carved is not None else 0}
     if "reason" in info:
         stats["reason"] = info["reason"]
     stats["residual_history"] = [float(r) for r in info.get("residual_history", [])]

@@ -1,0 +1,100 @@
+"""Free space seen by the rays (kernels/carve.py, ``prior.carve``): exact counts, and voxels the
+rays passed through are held out of the surface where the data would put one."""
+
+import numpy as np
+
+from conftest import posterior_system, pulled_inside, solved
+
+
+def _reference_counts(ijk, depth, K, T_W_C, voxel, tau_b):
+    """The carve / observe rule of kernels/carve.py in numpy, one voxel at a time in spirit."""
+    T_C_W = np.linalg.inv(T_W_C)
+    A, c = K @ T_C_W[:3, :3] * voxel, K @ (T_C_W[:3, :3] @ np.full(3, 0.5 * voxel) + T_C_W[:3, 3])
+    p = ijk.astype(np.float64) @ A.T + c
+    z = p[:, 2]
+    h, w = depth.shape
+    counts = np.zeros((len(ijk), 2), np.int32)
+    for i in range(len(ijk)):
+        if z[i] <= 0:
+            continue
+        uh, vh = p[i, 0] / z[i] + 0.5, p[i, 1] / z[i] + 0.5
+        if not (0 <= uh < w and 0 <= vh < h):
+            continue
+        d = float(depth[int(vh), int(uh)])
+        if d > 0 and d - z[i] >= -tau_b:
+            counts[i] = (int(d - z[i] >= tau_b), 1)
+    return counts
+
+
+def test_carve_counts_match_the_bootstrap_rule():
+    """Per frame, a voxel is observed when it projects onto a valid pixel no farther than
+    tau_b behind its depth, and carved when it lies at least tau_b in front of it; the counts
+    over frames are exact integers."""
+    from kernels.carve import FreeSpaceCounter
+
+    rng = np.random.default_rng(3)
+    voxel, tau_b = 0.02, 0.08
+    K = np.array([[61.37, 0, 31.71], [0, 60.93, 23.29], [0, 0, 1]])  # no pixel edge on a voxel
+    ijk = rng.integers(-40, 40, size=(4000, 3)).astype(np.int32)
+    counter = FreeSpaceCounter(ijk, voxel, tau_b)
+    expected = np.zeros((len(ijk), 2), np.int32)
+    for f in range(3):
+        depth = (0.6 + 0.4 * rng.random((48, 64))).astype(np.float32)
+        depth[rng.random(depth.shape) < 0.1] = 0.0  # invalid pixels
+        T = np.eye(4)
+        T[:3, 3] = (0.1031 * f + 0.0047, -0.0513, -1.0071)
+        counter.add(depth, K, T)
+        expected += _reference_counts(ijk, depth, K, T, voxel, tau_b)
+    np.testing.assert_array_equal(counter.carved(), expected[:, 0])
+    np.testing.assert_array_equal(counter.observing(), expected[:, 1])
+    assert expected[:, 0].sum() > 100 and (expected[:, 1] > expected[:, 0]).sum() > 100
+
+
+def test_carved_voxels_are_lifted_out_of_the_surface():
+    """Voxels in front of the surface that the averaged TSDF does not call free (``tsdf <=
+    tau``), pulled toward "inside" (as the samples behind a thin part pull them) below half a
+    voxel, end in front of the surface once the rays carved them, and stay bent otherwise."""
+    from bftaichi.running.pipeline import open_frames
+    from bftaichi.stages.prior import System
+    from bftaichi.stages.solve import solve_map
+    from test_posterior import _sphere_cfg
+
+    cfg = _sphere_cfg(0.03, ["observation.fit_noise=false", "observation.aggregate=0"])
+    recon, post = solved(cfg, open_frames(cfg), variance=False)
+    band, system = posterior_system(recon)
+    S, nbr, far = system.S.copy(), system.nbr, system.far
+    vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
+    near_free = np.flatnonzero(band.observed & (band.tsdf <= tau) & (post.mean > vs))
+    assert len(near_free) > 100
+    pulled = near_free[:: len(near_free) // 24][:24]
+    h, bent = pulled_inside(S, nbr, far, post.mean, pulled, tau, vs)
+    hit = pulled[bent[pulled] < 0.5 * vs]  # the inequality broken
+    assert len(hit) >= 8
+    cfg.solver.tol = 1e-8
+    carved = np.zeros(len(band), bool)
+    carved[hit] = True
+    runs = {}
+    for name, mask in (("plain", None), ("carved", carved)):
+        runs[name], info = solve_map(System(S=S.copy(), nbr=nbr, h=h.copy(), far=far), bent,
+                                     cfg.solver, band, trunc_m=tau, voxel_size_m=vs,
+                                     free=1000.0, carved=mask)
+        assert info["converged"]
+    assert info["free_space"]["carved_voxels"] == len(hit)
+    np.testing.assert_allclose(runs["plain"][hit], bent[hit], atol=0.05 * vs)
+    # a soft inequality (the anchors' strength is that of the pull): in front, no surface
+    assert (runs["carved"][hit] > 0).all()
+
+
+def test_a_closed_convex_object_is_carved_nowhere_on_its_surface():
+    """On a sphere every ray that reaches a voxel near the surface ends on that surface: the
+    default carve rule holds no voxel the surface passes through, and the posterior equals the
+    one without it."""
+    from bftaichi.running.pipeline import open_frames
+    from test_posterior import _sphere_cfg
+
+    cfg = _sphere_cfg(0.03, ["observation.fit_noise=false"])
+    off = _sphere_cfg(0.03, ["observation.fit_noise=false", "prior.carve=0"])
+    _, post = solved(cfg, open_frames(cfg), variance=False)
+    _, post_off = solved(off, open_frames(off), variance=False)
+    assert post.solver["free_space"]["carved_voxels"] > 0  # the free side of the band
+    np.testing.assert_allclose(post.mean, post_off.mean, atol=1e-3 * cfg.tsdf.voxel_size_m)
