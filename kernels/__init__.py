@@ -11,6 +11,7 @@ Modules, one per concern (DESIGN.md section 3):
     lookup   -- voxel -> band index lookup (sorted block keys + per-block tables) and its inverse.
     band     -- narrow band: core, dilation, compaction, 27-point neighbour tables.
     observe  -- Observer: depth frames -> SDF samples -> data term in the 27-point stencil.
+    carve    -- FreeSpaceCounter: per band voxel, the frames that saw it as free space.
     dataterm -- the Taichi kernels behind Observer (normals, samples, fixed-point accumulation).
     prior    -- GMRF membrane and curvature priors and anchors added into the stencil.
     stencil  -- the stencil contract and its checks; matrix-free Q·x (27-point gather).

@@ -1,10 +1,13 @@
 #!/usr/bin/env python
-"""The observation pass per frame: the rays model, the voxel model and the TSDF, side by side.
+"""The observation pass per frame: the rays model, the voxel model, the free-space count and the
+TSDF, side by side.
 
 Fuses real frames into the TSDF, builds the posterior's band from it, then times, frame by
 frame and alternating, what each ``observation.model`` costs to add one frame to the data term
 (``Observer.integrate``: :mod:`kernels.observe`'s samples along every pixel's ray, and
-:mod:`kernels.voxelobs`'s per-voxel gather) against integrating the same frame into the TSDF::
+:mod:`kernels.voxelobs`'s per-voxel gather) and what counting the frame's free space costs
+(:mod:`kernels.carve`, ``prior.carve``, in the same pass as either model) against
+integrating the same frame into the TSDF::
 
     python tools/bench_observe.py                              # redkitchen, 2 cm
     python tools/bench_observe.py --voxel 0.01 --timed 20
@@ -40,6 +43,7 @@ def main(argv=None) -> int:
     from bftaichi.frame import local_frames
     from bftaichi.stages.band import build_band
     from bftaichi.stages.observe import make_observer
+    from kernels.carve import FreeSpaceCounter
 
     cfg = bf.load_config(None, [f"tsdf.voxel_size_m={args.voxel}",
                                 f"tsdf.trunc_m={2 * args.voxel}"])
@@ -56,11 +60,13 @@ def main(argv=None) -> int:
         cfg.observation.model = model
         observers[model] = make_observer(band, cfg.observation, vs, tau)
     tsdf = bf.TSDFVolume(vs, cfg.tsdf.bootstrap_trunc_m)
+    carve = FreeSpaceCounter(band.ijk, vs, cfg.tsdf.bootstrap_trunc_m)
     f0 = frames[int(picks[0])]
+    carve.add(f0.depth_m, f0.K, f0.T_W_C)
     for obs in observers.values():  # compile
         obs.integrate(f0.depth_m, f0.K, f0.T_W_C)
     tsdf.integrate(f0.depth_m, f0.K, f0.T_W_C, name="warm-up")
-    ms = {"tsdf": [], "rays": [], "voxels": []}
+    ms = {"tsdf": [], "rays": [], "voxels": [], "carve": []}
     for n, i in enumerate(picks):
         f = frames[int(i)]
         t = time.perf_counter()
@@ -70,6 +76,9 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             obs.integrate(f.depth_m, f.K, f.T_W_C)
             ms[model].append(1e3 * (time.perf_counter() - t))
+        t = time.perf_counter()
+        carve.add(f.depth_m, f.K, f.T_W_C)
+        ms["carve"].append(1e3 * (time.perf_counter() - t))
     print(f"{args.voxel * 100:g} cm: band {len(band):,} voxels, {len(picks)} of {len(frames)} "
           "frames timed (ms per frame)")
     print("| | median | best | median / TSDF |\n|---|---|---|---|")

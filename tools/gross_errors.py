@@ -9,6 +9,12 @@ than 5 cm off for one method while the other is within 2 cm::
 
     python tools/evalviews_table.py --frames 0:100 --voxels 0.02 --no-open3d --out out/ev
     python tools/gross_errors.py out/ev/evalviews-2cm --frames 100 --every 10
+
+With ``--carve``, also how the fused frames (the even ones) saw the voxel each ray-cast depth
+lands in, for the posterior-only pixels in front and for the pixels within 1 cm (up to 2000 of
+each, every tenth): how many frames carved it (saw it farther than the bootstrap truncation in
+front of their surface, :mod:`kernels.carve`) and what share of the frames observing it that is
+(``prior.carve`` is a threshold on it).
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=str(DATA), help="the dataset the run fused")
     ap.add_argument("--frames", type=int, default=100, help="first N frames of the dataset")
     ap.add_argument("--every", type=int, default=10, help="frame step (odd offsets: held out)")
+    ap.add_argument("--carve", action="store_true",
+                    help="also the carve counts of the voxels the gross and the good pixels hit")
     args = ap.parse_args(argv)
 
     import numpy as np
@@ -47,6 +55,7 @@ def main(argv=None) -> int:
     ds = open_dataset(args.data)
     observed = (post.weight > 0).astype(np.uint8)
     front = behind = tsdf_only = pixels = 0
+    hits = {"gross, in front": [], "within 1 cm": []}
     for i in range(1, min(args.frames, len(ds)), args.every):
         fr = ds[i]
         h, w = fr.depth_m.shape
@@ -64,9 +73,35 @@ def main(argv=None) -> int:
         behind += int(np.sum(post_only & (e > 0)))
         tsdf_only += int(np.sum(both & (np.abs(et) > 0.05) & (np.abs(e) < 0.02)))
         pixels += int(both.sum())
+        if args.carve:
+            K_inv = np.linalg.inv(fr.K)
+            for name, sel in (("gross, in front", post_only & (e < 0)),
+                              ("within 1 cm", both & (np.abs(e) < 0.01))):
+                vv, uu = np.nonzero(sel)
+                vv, uu = vv[::10], uu[::10]
+                rays = np.stack([uu, vv, np.ones_like(uu)]).astype(np.float64)
+                p = (T[:3, :3] @ (K_inv @ rays * z[vv, uu])).T + T[:3, 3]
+                hits[name].append(np.floor(p / post.voxel_size).astype(np.int32))
     print(f"{pixels} pixels where all three have depth; posterior > 5 cm off while the TSDF is "
           f"within 2 cm: {front} in front of the measured depth, {behind} behind; the TSDF > 5 cm "
           f"off while the posterior is within 2 cm: {tsdf_only}")
+    if args.carve:
+        from kernels.carve import FreeSpaceCounter
+
+        for name, ijk in hits.items():
+            ijk = np.concatenate(ijk) if ijk else np.zeros((0, 3), np.int32)
+            ijk = ijk[np.linspace(0, len(ijk) - 1, min(2000, len(ijk))).astype(int)]
+            counter = FreeSpaceCounter(ijk, post.voxel_size, post.bootstrap_trunc_m)
+            for i in range(0, min(args.frames, len(ds)), 2):
+                fr = ds[i]
+                counter.add(fr.depth_m, fr.K, pose_in_local(fr.T_W_C, post.origin))
+            n, seen = counter.carved(), counter.observing()
+            share = n / np.maximum(seen, 1)
+            if len(ijk):
+                print(f"{name}: {len(ijk)} voxels, carved by a median of {np.median(n):.0f} "
+                      f"frames ({100 * np.median(share):.0f} % of those observing it); share "
+                      f">= 20 / 40 %: {100 * np.mean(share >= 0.2):.0f} / "
+                      f"{100 * np.mean(share >= 0.4):.0f} % of the voxels")
     return 0
 
 
