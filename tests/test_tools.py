@@ -95,8 +95,10 @@ def test_evalviews_table_and_gross_errors_on_a_few_real_frames(tmp_path):
     nll = rows[0].split("|")[-2].strip()
     assert nll.startswith(("+", "-")) and float(nll) == float(nll)  # the NLL column, finite
     out = _run([TOOLS / "gross_errors.py", tmp_path / "evalviews-8cm", "--frames", "6",
-                "--every", "2"])
+                "--every", "2", "--carve"])
     assert "pixels where all three have depth" in out and "in front of the measured depth" in out
+    good = out.split("within 1 cm: ")[1]  # the carve counts of the voxels the good pixels hit
+    assert "carved by a median of" in good and "% of those observing it" in good
 
 
 def test_sigma_breakdown_compares_bulk_and_mean_square():
