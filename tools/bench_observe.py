@@ -60,7 +60,8 @@ def main(argv=None) -> int:
         cfg.observation.model = model
         observers[model] = make_observer(band, cfg.observation, vs, tau)
     tsdf = bf.TSDFVolume(vs, cfg.tsdf.bootstrap_trunc_m)
-    carve = FreeSpaceCounter(band.ijk, vs, cfg.tsdf.bootstrap_trunc_m)
+    todo = band.observed & (band.tsdf <= tau)  # what the solve counts (bandsolve.solve_band)
+    carve = FreeSpaceCounter(band.ijk[todo], vs, cfg.tsdf.bootstrap_trunc_m)
     f0 = frames[int(picks[0])]
     carve.add(f0.depth_m, f0.K, f0.T_W_C)
     for obs in observers.values():  # compile
@@ -79,8 +80,8 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         carve.add(f.depth_m, f.K, f.T_W_C)
         ms["carve"].append(1e3 * (time.perf_counter() - t))
-    print(f"{args.voxel * 100:g} cm: band {len(band):,} voxels, {len(picks)} of {len(frames)} "
-          "frames timed (ms per frame)")
+    print(f"{args.voxel * 100:g} cm: band {len(band):,} voxels ({int(todo.sum()):,} counted for "
+          f"free space), {len(picks)} of {len(frames)} frames timed (ms per frame)")
     print("| | median | best | median / TSDF |\n|---|---|---|---|")
     base = float(np.median(ms["tsdf"]))
     for k, v in ms.items():

@@ -41,14 +41,16 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     if cfg.prior.free > 0 and cfg.prior.carve > 0:
         from kernels.carve import FreeSpaceCounter
 
-        free_space = FreeSpaceCounter(band.ijk, vs, cfg.tsdf.bootstrap_trunc_m)
+        # the voxels the averaged TSDF already calls free need no count
+        todo = np.flatnonzero(band.observed & (band.tsdf <= tau))
+        free_space = FreeSpaceCounter(band.ijk[todo], vs, cfg.tsdf.bootstrap_trunc_m)
     S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
                                 else frames, o.stride, free_space)
     carved = None
     if free_space is not None:  # seen as free space by at least `carve` of its frames, and 2
         n_carved = free_space.carved()
-        carved = band.observed & (n_carved >= 2) & (n_carved >= cfg.prior.carve
-                                                    * free_space.observing())
+        carved = np.zeros(len(band), bool)
+        carved[todo] = (n_carved >= 2) & (n_carved >= cfg.prior.carve * free_space.observing())
     observer.release()  # the misfit pass below needs only its lookups
     lap("observe")
     system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4

@@ -67,7 +67,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     curvature prior is reweighted at the mean and the MAP solved again, :data:`ROBUST_PASSES`
     times, each followed by the free-space passes. Returns ``(mean, stats)``: ``converged``,
     ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
-    ``free_space`` (``passes, anchored, free_voxels``), ``residual_history`` (the last solve's)
+    ``free_space`` (``passes, anchored, free_voxels``, ``carved_voxels``: those of ``carved``,
+    which the averaged TSDF does not call free), ``residual_history`` (the last solve's)
     and ``reason`` when PCG stopped early."""
     from kernels.compact import CompactStencil
     from kernels.layout import CENTRE
