@@ -218,8 +218,9 @@ def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.nd
     Every frame is observed again (same samples and weights as the data term) against the
     posterior mean; the samples within 1.5 voxels of their pixel's measured surface count
     (``kernels.dataterm.MISFIT_NEAR``): they fix the zero crossing, where the vertices lie,
-    while farther ones carry the projective distance's own model error. Per voxel, the squared residuals of the pixels reaching it and what the
-    model expects of them (their noise variance less the part the fit absorbs,
+    while farther ones carry the projective distance's own model error. Per voxel, the
+    squared residuals of the pixels reaching it and what the model expects of them (their
+    noise variance less the part the fit absorbs,
     :meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its 26
     neighbours (a 3-voxel window: a few pixels per voxel are too few for a variance). Their
     ratio ``chi2`` (mean squared residual over its expectation) tells:

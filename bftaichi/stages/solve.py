@@ -61,8 +61,9 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     ``system.S`` and ``system.h``, in place) and the MAP is solved again, warm-started, up to
     ``passes`` times (``free = 0``: no constraint). The anchors are taken out of ``system``
     again at the end: they enforce an inequality on the mean and are no measurement, so the
-    variance (step 6) is that of the data and the prior (an anchored voxel next to a vertex
-    made its sigma ~30x too small). With ``prior`` (the
+    variance (step 6) is that of the data and the prior (kept in, they made the sigma of the
+    vertices beside anchored voxels far smaller than their errors: docs/measurements.md,
+    ``prior.carve``). With ``prior`` (the
     :class:`~.prior.PriorConfig` of ``system``) and ``prior.curvature_scale > 0``, the robust
     curvature prior is reweighted at the mean and the MAP solved again, :data:`ROBUST_PASSES`
     times, each followed by the free-space passes. Returns ``(mean, stats)``: ``converged``,
