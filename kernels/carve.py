@@ -20,11 +20,12 @@ import numpy as np
 import taichi as ti
 
 from .stencil import first_chunk, virtual_iterations
+from .tsdf import voxel_projection
 
 _NDA = ti.types.ndarray
 
-P_A = 0  # 9: A = K R_CW voxel_size, row-major: K x_C of voxel ijk = A ijk + c
-P_C = 9  # 3: c = K (R_CW (0.5 voxel_size) (1, 1, 1) + t_CW)
+P_A = 0  # 9: A, row-major (kernels.tsdf.voxel_projection: K x_C of voxel ijk = A ijk + c)
+P_C = 9  # 3: c
 P_TRUNC = 12  # tau_b, metres
 N_PARAMS = 13
 
@@ -77,12 +78,8 @@ class FreeSpaceCounter:
         ``T_W_C`` (4, 4) camera-to-world in the band's local frame."""
         if not len(self.ijk):
             return
-        K = np.asarray(K, np.float64)
-        T_C_W = np.linalg.inv(np.asarray(T_W_C, np.float64))
-        R_CW, t_CW = T_C_W[:3, :3], T_C_W[:3, 3]
         prm = self._prm
-        prm[P_A:P_A + 9] = (K @ R_CW * self.voxel_size).ravel()
-        prm[P_C:P_C + 3] = K @ (R_CW @ np.full(3, 0.5 * self.voxel_size) + t_CW)
+        prm[P_A:P_A + 9], prm[P_C:P_C + 3] = voxel_projection(K, T_W_C, self.voxel_size)
         prm[P_TRUNC] = self.trunc_m
         carve_frame(self.ijk, np.ascontiguousarray(depth_m, np.float32), prm, self.counts)
 

@@ -388,11 +388,8 @@ class SparseTSDF:
         K = np.asarray(K, np.float64)
         T = np.asarray(T_W_C, np.float64)
         R_WC, t_WC = T[:3, :3], T[:3, 3]
-        T_C_W = np.linalg.inv(T)  # not R^T: recorded rotations are orthonormal only to ~1e-6
-        R_CW, t_CW = T_C_W[:3, :3], T_C_W[:3, 3]
         prm = self._params
-        prm[P_A:P_A + 9] = (K @ R_CW * self.voxel_size).ravel()
-        prm[P_C:P_C + 3] = K @ (R_CW @ np.full(3, 0.5 * self.voxel_size) + t_CW)
+        prm[P_A:P_A + 9], prm[P_C:P_C + 3] = voxel_projection(K, T, self.voxel_size)
         K_inv = np.array([[1.0 / K[0, 0], 0.0, -K[0, 2] / K[0, 0]],
                           [0.0, 1.0 / K[1, 1], -K[1, 2] / K[1, 1]], [0.0, 0.0, 1.0]])
         prm[P_M:P_M + 9] = (R_WC @ K_inv / self.block_size_m).ravel()
@@ -544,6 +541,17 @@ class SparseTSDF:
         """Allocated blocks, and activation samples that fell outside the index range."""
         return {"blocks": int(self.counts[C_SLOTS]),
                 "out_of_range_samples": int(self.counts[C_OUT])}
+
+
+def voxel_projection(K: np.ndarray, T_W_C: np.ndarray, voxel_size: float) -> tuple:
+    """``(A, c)``: ``K x_C`` of voxel ``ijk``'s centre is ``A ijk + c``, with ``A = K R_CW
+    voxel_size`` (9,) row-major and ``c = K (R_CW (0.5 voxel_size) (1, 1, 1) + t_CW)`` (3,),
+    float64: how the bootstrap (and :mod:`kernels.carve`) projects voxels into a frame."""
+    K = np.asarray(K, np.float64)
+    T_C_W = np.linalg.inv(np.asarray(T_W_C, np.float64))  # not R^T: recorded rotations are
+    R_CW, t_CW = T_C_W[:3, :3], T_C_W[:3, 3]  # orthonormal only to ~1e-6
+    return ((K @ R_CW * voxel_size).ravel(),
+            K @ (R_CW @ np.full(3, 0.5 * voxel_size) + t_CW))
 
 
 def _block_keys(blocks: np.ndarray) -> np.ndarray:

@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     import bftaichi as bf
     from bftaichi.frame import local_frames
     from bftaichi.stages.band import build_band
-    from bftaichi.stages.observe import make_observer
+    from bftaichi.stages.observe import free_space_rows, make_observer
     from kernels.carve import FreeSpaceCounter
 
     cfg = bf.load_config(None, [f"tsdf.voxel_size_m={args.voxel}",
@@ -60,7 +60,7 @@ def main(argv=None) -> int:
         cfg.observation.model = model
         observers[model] = make_observer(band, cfg.observation, vs, tau)
     tsdf = bf.TSDFVolume(vs, cfg.tsdf.bootstrap_trunc_m)
-    todo = band.observed & (band.tsdf <= tau)  # what the solve counts (bandsolve.solve_band)
+    todo = free_space_rows(band, tau)  # what the solve counts
     carve = FreeSpaceCounter(band.ijk[todo], vs, cfg.tsdf.bootstrap_trunc_m)
     f0 = frames[int(picks[0])]
     carve.add(f0.depth_m, f0.K, f0.T_W_C)
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         carve.add(f.depth_m, f.K, f.T_W_C)
         ms["carve"].append(1e3 * (time.perf_counter() - t))
-    print(f"{args.voxel * 100:g} cm: band {len(band):,} voxels ({int(todo.sum()):,} counted for "
+    print(f"{args.voxel * 100:g} cm: band {len(band):,} voxels ({len(todo):,} counted for "
           f"free space), {len(picks)} of {len(frames)} frames timed (ms per frame)")
     print("| | median | best | median / TSDF |\n|---|---|---|---|")
     base = float(np.median(ms["tsdf"]))

@@ -8,7 +8,8 @@ import time
 
 import numpy as np
 
-from .observe import FramePicks, estimate_extra_noise, local_misfit, make_observer, observe
+from .observe import (FramePicks, estimate_extra_noise, free_space_rows, local_misfit,
+                      make_observer, observe)
 from .prior import add_prior
 from .solve import solve_map
 from .variance import estimate_variance
@@ -41,8 +42,7 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     if cfg.prior.free > 0 and cfg.prior.carve > 0:
         from kernels.carve import FreeSpaceCounter
 
-        # the voxels the averaged TSDF already calls free need no count
-        todo = np.flatnonzero(band.observed & (band.tsdf <= tau))
+        todo = free_space_rows(band, tau)
         free_space = FreeSpaceCounter(band.ijk[todo], vs, cfg.tsdf.bootstrap_trunc_m)
     S, h_data, counts = observe(observer, frame_iter(frames, "observe") if frame_iter
                                 else frames, o.stride, free_space)

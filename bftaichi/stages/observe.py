@@ -14,8 +14,8 @@ import numpy as np
 from ..checks import check_choice, check_range
 from ..errors import ConfigError
 
-__all__ = ["ObservationConfig", "make_observer", "observe", "estimate_extra_noise",
-           "local_misfit", "FramePicks"]
+__all__ = ["ObservationConfig", "make_observer", "observe", "free_space_rows",
+           "estimate_extra_noise", "local_misfit", "FramePicks"]
 
 
 @dataclass
@@ -197,6 +197,12 @@ def make_observer(band, obs: ObservationConfig, voxel_size_m: float, trunc_m: fl
                sigma_corr_m=corr, count_once=obs.count_once, front_m=obs.front * trunc_m,
                reference=band.reference, gate_m=obs.gate * trunc_m,
                aggregate=obs.aggregate, behind_incidence=obs.behind == "incidence")
+
+
+def free_space_rows(band, trunc_m: float) -> np.ndarray:
+    """Band rows whose free space ``prior.carve`` counts: the observed voxels the averaged TSDF
+    does not already call free (``tsdf <= tau``; the others are in the inequality anyway)."""
+    return np.flatnonzero(band.observed & (band.tsdf <= trunc_m))
 
 
 def observe(observer, frames, stride: int, free_space=None):
