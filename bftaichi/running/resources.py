@@ -20,7 +20,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from kernels.layout import block_key_np as _keys
+from kernels.layout import KEY_BIAS, block_key_np as _keys, decode_keys
 from kernels.observe import accumulator_parts
 from kernels.layout import block_key_steps as _block_steps
 
@@ -235,9 +235,16 @@ class SceneSample:
         sampled point (see :meth:`measure`), computed once per voxel size."""
         cell_m = max(4 * voxel_size_m, 2 * self.spacing_m)
         if voxel_size_m not in self._cells:
-            pts = [np.floor(p / cell_m).astype(np.int64) for p, *_ in self.views]
-            self._cells[voxel_size_m] = (np.unique(np.concatenate(pts), axis=0) if pts
-                                         else np.zeros((0, 3), np.int64))
+            cells = (np.concatenate([np.floor(p / cell_m).astype(np.int64)
+                                     for p, *_ in self.views]) if self.views
+                     else np.zeros((0, 3), np.int64))
+            if len(cells) and np.abs(cells).max() < KEY_BIAS:
+                # unique packed keys (ascending keys = lexicographic cells): the same sorted
+                # cells as np.unique(axis=0), ~10x faster than its row sort
+                cells = decode_keys(np.unique(_keys(cells)))
+            else:
+                cells = np.unique(cells, axis=0)
+            self._cells[voxel_size_m] = cells
         return self._cells[voxel_size_m], cell_m
 
     def measure(self, voxel_size_m: float, trunc_b_m: float) -> dict:
