@@ -81,10 +81,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     # validated again (three stencil products, ~240 bytes per voxel of temporaries)
     compact = CompactStencil(S, system.nbr, system.far, check=False)
 
-    import os
-    LOOSE = float(os.environ.get("BT_LOOSE", "0"))
-    def solve(start, tol=None):
-        return pcg(S, system.nbr, h, start, tol=tol or (LOOSE if LOOSE else solver.tol), maxiter=solver.maxiter,
+    def solve(start):
+        return pcg(S, system.nbr, h, start, tol=solver.tol, maxiter=solver.maxiter,
                    far=system.far, compact=compact)
 
     mean, info = solve(x0)
@@ -118,9 +116,6 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
             compact.set_diagonal(S[:, CENTRE])
             mean, info = solve(mean)
             iterations += info["iterations"]
-    if LOOSE:
-        mean, info = solve(mean, solver.tol)
-        iterations += info["iterations"]
     if free > 0:
         n_free, n_anchored = int(free_mask.sum()), int(active.sum())
     # the anchors enforce an inequality on the mean; they are not measurements, so the
