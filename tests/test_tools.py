@@ -118,3 +118,25 @@ def test_sigma_breakdown_takes_a_synthetic_scene_file():
                            "scenes/seed_sphere.toml", "few_views"], capture_output=True,
                           text=True, cwd=ROOT, timeout=120)
     assert proc.returncode == 2 and "takes no condition" in proc.stderr
+
+
+def test_suite_diff_shows_what_moved_and_the_targets_of_both(tmp_path):
+    """Two suite runs that differ in one case's 1-sigma coverage: the summary lines count the
+    target each run meets, and only that case is listed, old -> new, with its misses."""
+    import json
+
+    row = {"cd_tsdf": 2e-5, "cd_post": 1.4e-5, "f_mm": 1.0, "f_tsdf": 0.6, "f_post": 0.7,
+           "coverage@1sigma": 0.70, "coverage@2sigma": 0.95, "coverage@3sigma": 0.99,
+           "nll_vs_constant": -0.5, "ause": 3e-4, "spearman": 0.4}
+    old = {"homer/few_views": dict(row), "suzanne/few_views": dict(row)}
+    new = {"homer/few_views": dict(row), "suzanne/few_views": {**row, "coverage@1sigma": 0.82}}
+    for name, rows in (("old.json", old), ("new.json", new)):
+        (tmp_path / name).write_text(json.dumps({"sets": [], "rows": rows}))
+    out = _run([TOOLS / "suite_diff.py", tmp_path / "old.json", tmp_path / "new.json"])
+    assert "before (no overrides): targets met: cov1 2/2" in out
+    assert "after (no overrides): targets met: cov1 1/2" in out
+    listed = [ln for ln in out.splitlines() if ln.startswith("| ") and "/" in ln.split("|")[1]]
+    assert len(listed) == 1 and listed[0].startswith("| suzanne/few_views |")
+    assert "70 / 95 / 99.0 -> 82 / 95 / 99.0" in listed[0] and "| - -> cov1 |" in listed[0]
+    same = _run([TOOLS / "suite_diff.py", tmp_path / "old.json", tmp_path / "old.json"])
+    assert "no case moved" in same

@@ -1,0 +1,92 @@
+#!/usr/bin/env python
+"""Two runs of the development suite side by side: what a model change moved, case by case.
+
+Reads two ``--json`` files of ``tools/suite.py`` (the rows of the same cases; a case only one
+run has is listed as such) and prints the summary line of each, then one row per case whose
+targets changed or any of whose figures, rounded as printed, changed: the CD ratio, the coverage at 1 / 2 / 3 sigma, the NLL minus the best constant's, AUSE and Spearman,
+each as old -> new, and the missed targets of both::
+
+    python tools/suite.py --json before.json
+    python tools/suite.py --set prior.curvature=0.2 --json after.json
+    python tools/suite_diff.py before.json after.json
+    python tools/suite_diff.py before.json after.json --all     # every case, moved or not
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from suite import summary, targets  # noqa: E402
+
+#: (label, value of a row, format): a figure moved when its formatted value changed
+FIGURES = (
+    ("CD ratio", lambda r: r["cd_post"] / r["cd_tsdf"], "{:.3f}"),
+    ("cov 1/2/3 sigma (%)", lambda r: tuple(100 * r[f"coverage@{k}sigma"] for k in (1, 2, 3)),
+     "{:.0f} / {:.0f} / {:.1f}"),
+    ("NLL - const", lambda r: r["nll_vs_constant"], "{:+.2f}"),
+    ("AUSE (mm)", lambda r: 1000 * r["ause"], "{:.3f}"),
+    ("Spearman", lambda r: r["spearman"], "{:.2f}"),
+)
+
+
+def _load(path: Path) -> tuple[dict, list]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"error: {path}: cannot read a suite.py --json file ({e})")
+    if not isinstance(data, dict) or not isinstance(data.get("rows"), dict):
+        raise SystemExit(f"error: {path}: no 'rows' (write it with tools/suite.py --json)")
+    return data["rows"], data.get("sets", [])
+
+
+def _fmt(fmt: str, v) -> str:
+    return fmt.format(*v) if isinstance(v, tuple) else fmt.format(v)
+
+
+def compare(old: dict, new: dict, every: bool = False) -> list[str]:
+    """Markdown lines: a header and one row per case that moved (every case with ``every``)."""
+    head = "| case | " + " | ".join(label for label, *_ in FIGURES) + " | misses |"
+    lines = [head, "|" + "---|" * (len(FIGURES) + 2)]
+    for name in list(old) + [n for n in new if n not in old]:
+        if name not in old or name not in new:
+            lines.append(f"| {name} | only in {'the first' if name in old else 'the second'} "
+                         "run |" + " |" * len(FIGURES))
+            continue
+        a, b = old[name], new[name]
+        miss_a = [k for k, ok in targets(name, a).items() if not ok]
+        miss_b = [k for k, ok in targets(name, b).items() if not ok]
+        cells, moved = [], miss_a != miss_b
+        for _, value, fmt in FIGURES:
+            sa, sb = _fmt(fmt, value(a)), _fmt(fmt, value(b))
+            moved |= sa != sb
+            cells.append(f"{sa} -> {sb}" if sa != sb else sb)
+        if moved or every:
+            misses = f"{', '.join(miss_a) or '-'} -> {', '.join(miss_b) or '-'}"
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {misses} |")
+    return lines
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("old", type=Path, help="suite.py --json of the run before")
+    ap.add_argument("new", type=Path, help="suite.py --json of the run after")
+    ap.add_argument("--all", action="store_true", help="list every case, not only those that moved")
+    args = ap.parse_args(argv)
+    old, sets_old = _load(args.old)
+    new, sets_new = _load(args.new)
+    print(f"before ({' '.join(sets_old) or 'no overrides'}): {summary(old)}")
+    print(f"after ({' '.join(sets_new) or 'no overrides'}): {summary(new)}")
+    print()
+    lines = compare(old, new, args.all)
+    print("\n".join(lines) if len(lines) > 2 else "no case moved")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
