@@ -138,12 +138,17 @@ def targets(name: str, row: dict) -> dict:
     return out
 
 
+def misses(name: str, row: dict) -> list[str]:
+    """The names of the targets the row misses (:func:`targets`), in their order."""
+    return [k for k, ok in targets(name, row).items() if not ok]
+
+
 def markdown(rows: dict) -> str:
     head = ("| case | CD TSDF | CD post | ratio | F@t TSDF / post | cov 1/2/3 sigma (%) | "
             "NLL - const | AUSE (mm) | top10 | Spearman | misses |")
     lines = [head, "|" + "---|" * 11]
     for name, r in rows.items():
-        miss = [k for k, ok in targets(name, r).items() if not ok]
+        miss = misses(name, r)
         lines.append(
             f"| {name} | {r['cd_tsdf']:.3g} | {r['cd_post']:.3g} | "
             f"{r['cd_post'] / r['cd_tsdf']:.2f} | @{r['f_mm']:g}: {r['f_tsdf']:.3f} / "

@@ -3,8 +3,9 @@
 
 Reads two ``--json`` files of ``tools/suite.py`` (the rows of the same cases; a case only one
 run has is listed as such) and prints the summary line of each, then one row per case whose
-targets changed or any of whose figures, rounded as printed, changed: the CD ratio, the coverage at 1 / 2 / 3 sigma, the NLL minus the best constant's, AUSE and Spearman,
-each as old -> new, and the missed targets of both::
+missed targets or any of whose figures, rounded as printed, changed: the CD ratio, the
+coverage at 1 / 2 / 3 sigma, the NLL minus the best constant's, AUSE and Spearman, each as
+old -> new, and the missed targets of both::
 
     python tools/suite.py --json before.json
     python tools/suite.py --set prior.curvature=0.2 --json after.json
@@ -21,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from suite import summary, targets  # noqa: E402
+from suite import misses, summary  # noqa: E402
 
 #: (label, value of a row, format): a figure moved when its formatted value changed
 FIGURES = (
@@ -58,16 +59,15 @@ def compare(old: dict, new: dict, every: bool = False) -> list[str]:
                          "run |" + " |" * len(FIGURES))
             continue
         a, b = old[name], new[name]
-        miss_a = [k for k, ok in targets(name, a).items() if not ok]
-        miss_b = [k for k, ok in targets(name, b).items() if not ok]
+        miss_a, miss_b = misses(name, a), misses(name, b)
         cells, moved = [], miss_a != miss_b
         for _, value, fmt in FIGURES:
             sa, sb = _fmt(fmt, value(a)), _fmt(fmt, value(b))
             moved |= sa != sb
             cells.append(f"{sa} -> {sb}" if sa != sb else sb)
         if moved or every:
-            misses = f"{', '.join(miss_a) or '-'} -> {', '.join(miss_b) or '-'}"
-            lines.append(f"| {name} | " + " | ".join(cells) + f" | {misses} |")
+            missed = f"{', '.join(miss_a) or '-'} -> {', '.join(miss_b) or '-'}"
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {missed} |")
     return lines
 
 
