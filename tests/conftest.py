@@ -84,3 +84,28 @@ def to_csr(S, nbr, far=None):
         i, a = np.nonzero(nbr2 >= 0)
         Q = Q + sp.csr_matrix((S2[i, a].astype(np.float64), (i, nbr2[i, a])), shape=(n, n))
     return Q
+
+
+def box_data_term(ijk, W):
+    """Dense ``D = sum_i W_i E_i[a a^T]`` (x uniform in voxel i's box, a the trilinear weights
+    of the cell holding x; cells with a corner outside the band dropped), integrated exactly:
+    2-point Gauss-Legendre per axis on each half of the box (a a^T is quadratic per axis)."""
+    import numpy as np
+
+    corners = np.array([(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    n = len(ijk)
+    index = {v: k for k, v in enumerate(map(tuple, ijk.tolist()))}
+    g = np.array([-1.0, 1.0]) / np.sqrt(3.0) * 0.25  # GL nodes on a half interval of length 1/2
+    D = np.zeros((n, n))
+    for i in np.flatnonzero(W > 0):
+        for sh in corners:  # octant: t < 0 along the axes where sh = 1
+            base = ijk[i] - sh
+            cell = [index.get(tuple(base + c)) for c in corners]
+            if None in cell:
+                continue
+            for q in corners:  # 8 quadrature points of the octant, weight 1/64 each
+                t = np.where(sh == 1, -0.25, 0.25) + g[q]
+                f = t + sh
+                a = np.prod(np.where(corners == 1, f, 1 - f), axis=1)
+                D[np.ix_(cell, cell)] += W[i] * np.outer(a, a) / 64.0
+    return D

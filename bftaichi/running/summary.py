@@ -32,7 +32,9 @@ def print_summary(out: Path, report: dict, verbose: bool = False) -> None:
         click.echo(f"mesh.ply: {c['mesh_vertices']:,} vertices, {c['mesh_faces']:,} faces; "
                    f"band {c['band_voxels']:,} voxels; MAP PCG {state} in {m['iterations']} "
                    f"iterations (relative residual {m['relative_residual']:.1e}); "
-                   f"variance from {v['n_probes']} probes ({s['posterior']:.2f} s)")
+                   f"variance from {v['n_probes']} probes"
+                   + (" and as many perturbations" if "perturbation" in v else "")
+                   + f" ({s['posterior']:.2f} s)")
         if verbose:
             sub = report["solver"]["seconds"]
             click.echo("posterior seconds: " + ", ".join(f"{k} {x:.2f}" for k, x in sub.items()))

@@ -9,7 +9,7 @@ step   module       what
 3      observe      depth pixels -> SDF samples -> data term (``[observation]``)
 4      prior        GMRF prior: membrane, curvature, anchors (``[prior]``)
 5      solve        PCG MAP with the free-space active set (``[solver]``)
-6      variance     probe estimate of ``diag(Q^-1)`` (``[solver]``)
+6      variance     probe estimate of ``diag(Q^-1)``, blended (``[solver]``)
 7      surface      marching cubes and vertex sigma (``[mesh]``)
 =====  ===========  =================================================================
 """

@@ -52,6 +52,13 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
         carved = np.zeros(len(band), bool)
         carved[todo] = (n_carved >= 2) & (n_carved >= cfg.prior.carve * free_space.observing())
     observer.release()  # the misfit pass below needs only its lookups
+    data = None
+    if variance and cfg.solver.variance != "posterior":  # the data term's share (step 6)
+        from kernels.layout import CENTRE
+
+        W = (S.sum(axis=1, dtype=np.float64).astype(np.float32)
+             if cfg.solver.variance == "blend-sampled" else None)  # its row sums
+        data = (W, S[:, CENTRE].copy())
     lap("observe")
     system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
     lap("prior")
@@ -60,7 +67,7 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
                                 prior=cfg.prior, carved=carved)
     lap("map")
     var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
-                                            probes=variance)
+                                            probes=variance, data=data)
     lap("variance")
     if o.local_noise:  # the model error b^2 (fully correlated between neighbours) added
         picked = FramePicks(frames, o.misfit_frames)

@@ -35,7 +35,19 @@ class SolverConfig:
     mean."""
 
     seed: int = 0
-    """Seed of the probe vectors."""
+    """Seed of the probe vectors (and, plus one, of the perturbation draws)."""
+
+    variance: str = "blend"
+    """Which variance the probes give (DESIGN.md 3.6; docs/measurements.md). ``posterior``:
+    the Bayesian ``diag(Q^-1)``. ``blend``: the MAP's error under the measurement noise (the
+    sandwich ``Q^-1 D Q^-1``, ``D`` the data term) plus the rest of ``Q^-1`` (the prior's
+    part) in proportion to the prior's share of each voxel's precision, ``1 - D_ii / Q_ii``,
+    with the sandwich's diagonal taken voxel by voxel (``rho B_ii``, ``rho = D_ii / Q_ii``):
+    ``var = B_ii (1 - rho + rho^2)``, no extra solve. ``blend-sampled``: the same blend with
+    the sandwich estimated by ``probes`` perturbation solves (a second batched solve). The
+    sandwich alone is too narrow where the prior extrapolates; ``Q^-1`` alone too wide where
+    the data pin a voxel down and the prior's modes are ones a smooth surface does not
+    have."""
 
     def check(self) -> None:
         check_range("solver.tol", self.tol, 0.0, 1.0, lo_open=True)
@@ -44,6 +56,7 @@ class SolverConfig:
         check_choice("solver.probe_method", self.probe_method, ("rademacher", "coloring"))
         check_range("solver.probe_tol", self.probe_tol, 0.0, 1.0, lo_open=True)
         check_range("solver.seed", self.seed, 0, MAX_SEED)
+        check_choice("solver.variance", self.variance, ("posterior", "blend", "blend-sampled"))
 
 
 ROBUST_PASSES = 2
