@@ -54,6 +54,22 @@ STRICT_HELP = ("Refuse input that fails a plausibility check (8-bit depth, depth
                "does not converge (otherwise the mesh is flagged): exit 2, no mesh written.")
 
 
+def _freeze_heap() -> None:
+    """Move the objects the imports made (Taichi, numpy, scipy, trimesh: ~140k) to the
+    permanent generation, so the garbage collections the solve runs to free Taichi's compiling
+    calls (:func:`kernels.stencil.free_compile_arguments`) scan only what the run creates:
+    measured 0.09 s a collection before, 2 us after, 8 of them in the default run. The CLI
+    only: the process is ours, and frozen objects are never collected, which a library call
+    must not impose on its caller."""
+    import gc
+
+    import taichi  # noqa: F401  the largest of the run's imports, loaded lazily otherwise
+
+    from .running import pipeline  # noqa: F401
+
+    gc.freeze()
+
+
 @contextlib.contextmanager
 def _warnings_on_stderr():
     """Print bftaichi's warnings (plausibility checks, datasets, locks) as ``warning: ...`` on
@@ -103,6 +119,7 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
 
     cfg = load_config(scene, _overrides(arch, sets) + (["run.strict=true"] if strict else []))
     out = Path(out or Path("out") / cfg.scene.name)
+    _freeze_heap()
     report = run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(out, report, verbose)
@@ -156,6 +173,7 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
         extra.append("run.strict=true")
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
                                                gt_mesh) + extra + _overrides(arch, sets))
+    _freeze_heap()
     report = run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(Path(out), report, verbose)
