@@ -55,12 +55,11 @@ STRICT_HELP = ("Refuse input that fails a plausibility check (8-bit depth, depth
 
 
 def _freeze_heap() -> None:
-    """Move the objects the imports made (Taichi, numpy, scipy, trimesh: ~140k) to the
-    permanent generation, so the garbage collections the solve runs to free Taichi's compiling
-    calls (:func:`kernels.stencil.free_compile_arguments`) scan only what the run creates:
-    measured 0.09 s a collection before, 2 us after, 8 of them in the default run. The CLI
-    only: the process is ours, and frozen objects are never collected, which a library call
-    must not impose on its caller."""
+    """Move the imports' objects (Taichi, numpy, scipy, trimesh: ~140k) to the permanent
+    generation, so the collections that free Taichi's compiling calls
+    (:func:`kernels.stencil.free_compile_arguments`) scan only what the run creates: 0.09 s ->
+    2 us each, 8 in the default run. The CLI only: frozen objects are never collected, which a
+    library call must not impose on its caller."""
     import gc
 
     import taichi  # noqa: F401  the largest of the run's imports, loaded lazily otherwise

@@ -132,8 +132,10 @@ def test_metrics_against_the_far_ground_truth_equal_the_near_ones(scenes):
             got = far["metrics"][mesh][key]
             if key.startswith(("precision@", "recall@", "fscore@")):
                 assert abs(got - value) <= 1e-3, (mesh, key, got, value)
-            else:  # chamfer, accuracy, completeness (metres), face counts
-                assert got == pytest.approx(value, rel=1e-3), (mesh, key)
+            else:  # chamfer, accuracy, completeness (metres), face counts: the means agree to
+                # 1e-5 m (test_posterior_load_gives_world_coordinates), which moves distances of
+                # ~1.6 cm by ~1e-3 and their squares (chamfer) by ~2e-3
+                assert got == pytest.approx(value, rel=2e-3), (mesh, key)
     for part in ("uncertainty", "band_uncertainty"):
         for key in ("n", "rms_error_m", "mean_error_m", "median_sigma_m", "coverage@1sigma",
                     "coverage@2sigma", "coverage@3sigma", "nll_vs_constant", "ause"):
