@@ -147,7 +147,8 @@ def print_result(res: dict) -> None:
     print(f"\n## {res['voxel'] * 100:g} cm, {res['frames']} frames "
           f"(band {res['fuse']['band_voxels']:,} voxels)\n")
     print("| stage | seconds |\n|---|---|")
-    keys = ["tsdf", "read_frames", "band", "noise", "observe", "prior", "map", "variance",
+    keys = ["memory_check", "tsdf", "read_frames", "band", "noise", "observe", "prior", "map",
+            "variance",
             "misfit", "mesh", "plots", "preview", "write", "total"]
     for k in keys:
         if k in st:
