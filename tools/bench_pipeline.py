@@ -148,8 +148,7 @@ def print_result(res: dict) -> None:
           f"(band {res['fuse']['band_voxels']:,} voxels)\n")
     print("| stage | seconds |\n|---|---|")
     keys = ["memory_check", "tsdf", "read_frames", "band", "noise", "observe", "prior", "map",
-            "variance",
-            "misfit", "mesh", "plots", "preview", "write", "total"]
+            "variance", "misfit", "mesh", "plots", "preview", "write", "total"]
     for k in keys:
         if k in st:
             print(f"| {k} | {st[k]:.2f} |")
