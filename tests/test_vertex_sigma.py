@@ -106,11 +106,12 @@ def test_probe_estimate_of_the_vertex_variance_against_exact(sphere):
 
 
 def test_sampled_blend_against_its_exact_value(sphere):
-    """``solver.variance = "blend-sampled"``: ``S + (1 - rho) (B - S)`` with ``S = Q^-1 D Q^-1`` (D a
-    box data term of weights W, made part of Q), ``B = Q^-1``, ``rho = D_ii / Q_ii``, against
-    the dense product. The sandwich is Monte Carlo (``perturbation_moments``), so K = 64 here:
-    measured median 1.5 %, p90 16 % relative error of the blend (K = 16: 7 %, 34 %), with the
-    data's share ``rho`` 0.08 / 0.32 / 0.90 (5th percentile / median / 95th)."""
+    """``solver.variance = "blend-sampled"``: ``S + (1 - rho) (B - S)`` with
+    ``S = Q^-1 D Q^-1`` (D a box data term of weights W, made part of Q), ``B = Q^-1``,
+    ``rho = D_ii / Q_ii``, against the dense product. The sandwich is Monte Carlo
+    (``perturbation_moments``), so K = 64 here: measured median 1.5 %, p90 16 % relative error
+    of the blend (K = 16: 7 %, 34 %), with the data's share ``rho`` 0.08 / 0.32 / 0.90 (5th
+    percentile / median / 95th)."""
     from dataclasses import replace
 
     from kernels.layout import CENTRE
@@ -138,7 +139,8 @@ def test_sampled_blend_against_its_exact_value(sphere):
     assert np.median(rel) < 0.04 and np.percentile(rel, 90) < 0.25, np.percentile(rel, [50, 90])
     assert np.all(sandwich <= bayes) and np.all(exact <= bayes)  # D <= Q: the noise's share
     prior_held = rho < 0.1  # there the blend keeps the Bayesian variance
-    assert prior_held.sum() > 50 and np.median(np.abs(var[prior_held] / bayes[prior_held] - 1)) < 0.1
+    assert prior_held.sum() > 50
+    assert np.median(np.abs(var[prior_held] / bayes[prior_held] - 1)) < 0.1
     pairs = both.nbr[:, list(FACE_PLUS)]
     bound = np.sqrt(var[:, None] * np.where(pairs >= 0, var[np.maximum(pairs, 0)], 0))
     assert np.all(np.abs(cov) <= bound * (1 + 1e-5))
