@@ -9,6 +9,8 @@ Deterministic: the same seed gives bitwise identical results.
 import numpy as np
 import taichi as ti
 
+from .funcs import corner
+from .layout import stencil_offset
 from .pcg import pcg_batched
 from .stencil import as_numpy, check_far, check_stencil, far_arrays, stencil_arrays
 
@@ -263,9 +265,14 @@ def box_perturbations(nbr, W, n_probes: int, seed: int = 0) -> np.ndarray:
     return Z
 
 
+#: Stencil offset of cell corner c (:func:`kernels.funcs.corner`) from the cell's base voxel.
+_CORNER_OFFSET = [[stencil_offset(o) for o in range(27)].index(corner(c)) for c in range(8)]
+
+
 @ti.func
 def _offset_index(d0, d1, d2):
-    """Stencil offset number of (d0, d1, d2) in {-1, 0, 1}^3 (kernels.layout.OFFSETS)."""
+    """Stencil offset number of (d0, d1, d2) in {-1, 0, 1}^3, the inverse of
+    :func:`kernels.layout.stencil_offset`."""
     return (d0 + 1) * 9 + (d1 + 1) * 3 + (d2 + 1)
 
 
@@ -276,7 +283,7 @@ def _cell_complete(nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
     for b in range(nbr.shape[0]):
         good = 1
         for c in ti.static(range(8)):
-            if nbr[b, _offset_index((c >> 2) & 1, (c >> 1) & 1, c & 1)] < 0:
+            if nbr[b, ti.static(_CORNER_OFFSET[c])] < 0:
                 good = 0
         ok[b] = ti.cast(good, ti.i8)
 
@@ -295,7 +302,7 @@ def _box_perturbation(nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
         for o in ti.static(range(27)):
             i = nbr[j, o]
             if i >= 0 and amp[i] != 0.0:
-                d = ti.Vector([o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1])  # x_i - x_j, voxels
+                d = ti.static(stencil_offset(o))  # x_i - x_j, voxels
                 a = ti.f32(1.0)
                 inside = True
                 sh = ti.Vector([0, 0, 0])

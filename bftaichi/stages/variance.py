@@ -51,7 +51,7 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
     variance, not the sandwich. The covariances are clipped to the blended variances' bound.
     """
     from kernels.layout import CENTRE
-    from kernels.probes import FACE_PLUS, probe_moments
+    from kernels.probes import probe_moments
 
     floor = (1.0 / system.S[:, CENTRE].astype(np.float64)).astype(np.float32)
     if not probes:
@@ -67,13 +67,22 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
         var, cov, stats = _blend(system, var, cov, stats, data[1])
     elif solver.variance == "blend-sampled" and data is not None:
         var, cov, stats = _blend_sampled(system, solver, var, cov, stats, *data)
-    nbr_var = np.zeros_like(cov)
-    for e, o in enumerate(FACE_PLUS):
-        j = system.nbr[:, o]
-        nbr_var[j >= 0, e] = var[j[j >= 0]]
+    nbr_var = _face_neighbours(system.nbr, var)
     bound = np.sqrt(var[:, None].astype(np.float64) * nbr_var).astype(np.float32)
     stats["n_cov_clipped"] = int(np.count_nonzero(np.abs(cov) > bound))
     return var, np.clip(cov, -bound, bound), stats
+
+
+def _face_neighbours(nbr: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(N, 3): ``x`` of each voxel's +x, +y, +z neighbour (the columns of ``cov``), 0 where
+    that neighbour is not in the band."""
+    from kernels.probes import FACE_PLUS
+
+    out = np.zeros((len(x), 3), x.dtype)
+    for e, o in enumerate(FACE_PLUS):
+        j = nbr[:, o]
+        out[j >= 0, e] = x[j[j >= 0]]
+    return out
 
 
 def _data_share(system, D_ii) -> np.ndarray:
@@ -86,15 +95,10 @@ def _data_share(system, D_ii) -> np.ndarray:
 
 def _blend(system, var_b, cov_b, stats, D_ii):
     """``blend``: ``F^1/2 B F^1/2`` with ``F = diag(1 - rho + rho^2)``."""
-    from kernels.probes import FACE_PLUS
-
     rho = _data_share(system, D_ii)
     f = 1.0 - rho + rho * rho
     var = var_b.astype(np.float64) * f
-    cov = cov_b.astype(np.float64)
-    for e, o in enumerate(FACE_PLUS):
-        j = system.nbr[:, o]
-        cov[:, e] *= np.sqrt(f * np.where(j >= 0, f[np.maximum(j, 0)], 0.0))
+    cov = cov_b.astype(np.float64) * np.sqrt(f[:, None] * _face_neighbours(system.nbr, f))
     stats = dict(stats, method=f"blend ({stats['method']}, local data share)",
                  mean_data_share=float(rho.mean()) if len(rho) else 0.0)
     return var.astype(np.float32), cov.astype(np.float32), stats
