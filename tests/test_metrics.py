@@ -8,8 +8,9 @@ import trimesh
 
 from bftaichi.errors import BftaichiError, DataError
 from bftaichi.io import write_mesh_ply
-from bftaichi.evaluation.metrics import (format_table, geometry_metrics, load_mesh, surface_sdf,
-                              uncertainty_metrics)
+from bftaichi.evaluation.metrics import (format_table, geometry_metrics, load_mesh, spearman,
+                                        surface_distances, surface_distances_many, surface_sdf,
+                                        uncertainty_metrics)
 
 THRESHOLDS = (5, 10, 20, 50)
 
@@ -220,6 +221,30 @@ def test_uncertainty_metrics_of_honest_gaussian_sigma():
     flat = uncertainty_metrics(truth + sigma * rng.normal(size=sigma.size),
                                np.full(sigma.size, 0.003), truth)
     assert flat["ause"] > u["ause"]
+
+
+def test_spearman_is_scipys_rank_correlation_with_ties():
+    from scipy.stats import spearmanr
+
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 40, 5000).astype(float)  # many ties
+    b = a + rng.normal(0, 15, a.size)
+    for x, y in ((a, b), (b, a), (a, -b), (rng.normal(size=7), rng.normal(size=7))):
+        assert spearman(x, y) == pytest.approx(spearmanr(x, y).statistic, rel=1e-12, abs=1e-14)
+    assert spearman(np.ones(10), b[:10]) == 0.0  # a constant ranks nothing (scipy: NaN)
+
+
+def test_distances_of_several_meshes_equal_separate_calls():
+    gt = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    preds = [trimesh.creation.icosphere(subdivisions=2, radius=0.102), unit_square(n=2),
+             trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int))]
+    many = surface_distances_many(preds, gt, 5000, seed=4)
+    for pred, got in zip(preds, many):
+        one = surface_distances(pred, gt, 5000, seed=4)
+        assert (got is None) == (one is None)
+        if one is not None:
+            assert all(np.array_equal(u, v) for u, v in zip(got, one))
+    assert many[2] is None  # no surface
 
 
 def test_uncertainty_metrics_reject_bad_input():

@@ -297,16 +297,17 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
     uncertainty = band_unc = None
     if gt is not None:
         from ..evaluation.metrics import (band_uncertainty, metrics_from_distances,
-                                          surface_distances, vertex_uncertainty)
+                                          surface_distances_many, vertex_uncertainty)
 
         e = cfg.eval
         with timer("metrics"):
             gt_local = mesh_in_local(gt, recon.origin)
-            for name, m in (("tsdf_mesh.ply", mesh), ("mesh.ply", post_mesh)):
-                if m is not None:
-                    distances[name] = surface_distances(m, gt_local, e.n_samples, e.seed)
-                    metrics[name] = metrics_from_distances(distances[name], e.thresholds_mm,
-                                                           len(m.faces))
+            named = [(n, m) for n, m in (("tsdf_mesh.ply", mesh), ("mesh.ply", post_mesh))
+                     if m is not None]
+            found = surface_distances_many([m for _, m in named], gt_local, e.n_samples, e.seed)
+            for (name, m), d in zip(named, found):
+                distances[name] = d
+                metrics[name] = metrics_from_distances(d, e.thresholds_mm, len(m.faces))
             if post is not None:
                 uncertainty = vertex_uncertainty(post_mesh, gt_local)
                 band_unc = band_uncertainty(post, gt, e.near_voxels, e.seed)
