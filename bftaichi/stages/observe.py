@@ -351,7 +351,9 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
 
     The part of ``e`` that neighbouring pixels share (pose and calibration errors) is half the
     mean product of the ``d`` of neighbouring cast pixels (``stride`` apart) of one frame
-    paired with the same other frame, ``c`` (independent noise averages out of it):
+    paired with two distinct cast pixels of the same other frame, ``c`` (independent noise
+    averages out of it; a pixel of the other frame paired with both would put its own noise
+    in):
     ``e_corr = sqrt(clip(c, 0, e^2))``; the rest, ``sqrt(e^2 - e_corr^2)``, is independent
     per pixel (:func:`make_observer` splits them).
 
@@ -407,13 +409,19 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             # the pair's sensor noise, both frames'; e enters the pair as 2 e^2 (stat below)
             s_all.append(np.hypot(sd_i[ok], obs.axial_sigma_m(D_j[cv[ok], cu[ok]])))
             # neighbouring cast pixels of frame i paired with frame j: the product of their
-            # d keeps what the pixels of a frame share (2 e_corr^2), not independent noise
+            # d keeps what the pixels of a frame share (2 e_corr^2), not independent noise,
+            # where they pair with two pixels of frame j (with one, seen at an angle, the
+            # product would hold that pixel's own noise, var(r_j), as if shared)
             grid = np.zeros(g_i.shape)
             have = np.zeros(g_i.shape, bool)
+            into = np.full(g_i.shape, -1, np.int64)  # the frame-j cast pixel each was paired to
             grid[v[ok], u[ok]], have[v[ok], u[ok]] = d, True
-            for a, b, ma, mb in ((grid[:, :-1], grid[:, 1:], have[:, :-1], have[:, 1:]),
-                                 (grid[:-1], grid[1:], have[:-1], have[1:])):
-                pair = ma & mb
+            into[v[ok], u[ok]] = cv[ok] * m_j.shape[1] + cu[ok]
+            for a, b, ma, mb, ja, jb in ((grid[:, :-1], grid[:, 1:], have[:, :-1], have[:, 1:],
+                                          into[:, :-1], into[:, 1:]),
+                                         (grid[:-1], grid[1:], have[:-1], have[1:], into[:-1],
+                                          into[1:])):
+                pair = ma & mb & (ja != jb)
                 lag_sum += 0.5 * float(np.sum(a[pair] * b[pair]))
                 lag_n += int(pair.sum())
     r = np.abs(np.concatenate(d_all)) if d_all else np.zeros(0)
