@@ -24,7 +24,8 @@ import numpy as np
 
 from ..errors import BftaichiError, DataError
 
-__all__ = ["geometry_metrics", "surface_distances", "surface_sdf", "uncertainty_metrics",
+__all__ = ["geometry_metrics", "surface_distances", "surface_distances_many", "surface_sdf",
+           "uncertainty_metrics", "spearman",
            "load_mesh", "check_mesh_file", "format_table", "DEFAULT_THRESHOLDS_MM",
            "near_surface_voxels", "band_uncertainty", "vertex_errors", "vertex_uncertainty"]
 
