@@ -44,8 +44,22 @@ def test_chunked_solve_equals_the_monolithic_one(mono):
     assert chunks["n"] >= 8 and chunks["side_voxels"] == 16
     assert sum(chunks["core_voxels"]) == len(mono.ijk)  # every voxel in exactly one core
     dm, ds = _differences(post, mono)
-    assert dm < 0.05 and ds < 0.01
+    # the issue's bound on the mean: each chunk decides the free-space inequality on its own
+    # mean, so a voxel near its threshold can be anchored in one solve and not in the other,
+    # which moves its neighbours (README, "chunks"): measured 0.080 voxel here, 5 of 28,070
+    # voxels above 0.02, all at a core's edge (0.004 with a halo of 9; 0.0007 without the
+    # carved voxels, below)
+    assert dm < 0.1 and ds < 0.01
     assert post.cov is not None and np.isfinite(post.cov).all()
+
+
+def test_chunked_linear_part_equals_the_monolithic_one_to_half_the_bound():
+    """Without the carved voxels the free-space inequality holds only where the averaged TSDF
+    exceeds tau, far from the surface, and the chunks meet half the issue's bound."""
+    extra = ["prior.carve=0"]
+    dm, _ = _differences(_solve(["run.chunk_m=0.32", *extra], variance=False),
+                         _solve(extra, variance=False))
+    assert dm < 0.05
 
 
 def test_a_small_halo_shows_the_chunk_edges(mono):
