@@ -375,3 +375,22 @@ def test_fuse_rgb_colours_both_meshes(tmp_path):
         assert len(rgb) > 100 and rgb.std(axis=0).min() > 5, name  # real colours, not a fill
     names = plyfile.PlyData.read(out / "mesh.ply")["vertex"].data.dtype.names
     assert "sigma" in names and "sigma_pos" in names
+
+
+def test_the_command_line_fills_taichis_offline_cache(tmp_path):
+    """A second ``bftaichi`` command starts from the kernels the first compiled: the process
+    writes Taichi's offline cache as it exits (the CLI freezes its imports' objects for the
+    run's garbage collections, and must unfreeze them at exit, or Taichi's program is never
+    freed and nothing is written: every run then compiled every kernel again)."""
+    import os
+    import subprocess
+    import sys
+
+    cache = tmp_path / "ti-cache"
+    cache.mkdir()
+    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(cache))
+    cmd = [sys.executable, "-m", "bftaichi.cli", "run", "--out", str(tmp_path / "out"), "-q",
+           "--set", "run.stages=tsdf_only", "--set", "run.plots=false", *sets_args()]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert sum(1 for p in cache.rglob("*") if p.is_file()) > 0
