@@ -413,16 +413,12 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             # where they pair with two pixels of frame j (with one, seen at an angle, the
             # product would hold that pixel's own noise, var(r_j), as if shared)
             grid = np.zeros(g_i.shape)
-            have = np.zeros(g_i.shape, bool)
             into = np.full(g_i.shape, -1, np.int64)  # the frame-j cast pixel each was paired to
-            grid[v[ok], u[ok]], have[v[ok], u[ok]] = d, True
+            grid[v[ok], u[ok]] = d
             into[v[ok], u[ok]] = cv[ok] * m_j.shape[1] + cu[ok]
-            for a, b, ma, mb, ja, jb in ((grid[:, :-1], grid[:, 1:], have[:, :-1], have[:, 1:],
-                                          into[:, :-1], into[:, 1:]),
-                                         (grid[:-1], grid[1:], have[:-1], have[1:], into[:-1],
-                                          into[1:])):
-                pair = ma & mb & (ja != jb)
-                lag_sum += 0.5 * float(np.sum(a[pair] * b[pair]))
+            for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1], np.s_[1:])):  # along u, v
+                pair = (into[a] >= 0) & (into[b] >= 0) & (into[a] != into[b])
+                lag_sum += 0.5 * float(np.sum(grid[a][pair] * grid[b][pair]))
                 lag_n += int(pair.sum())
     r = np.abs(np.concatenate(d_all)) if d_all else np.zeros(0)
     s = np.concatenate(s_all) if s_all else np.zeros(0)
