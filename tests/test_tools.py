@@ -99,6 +99,19 @@ def test_evalviews_table_and_gross_errors_on_a_few_real_frames(tmp_path):
     assert "pixels where all three have depth" in out and "in front of the measured depth" in out
     good = out.split("within 1 cm: ")[1]  # the carve counts of the voxels the good pixels hit
     assert "carved by a median of" in good and "% of those observing it" in good
+    # render_compare renders what evalviews scored (frames 1, 3, 5) the way evalviews does for
+    # the posterior and the TSDF mesh: the same pixels and mean errors as evalviews.json
+    out = _run([TOOLS / "render_compare.py", tmp_path / "evalviews-8cm", "--frames", "6",
+                "--every", "2"])
+    import json
+
+    scored = json.loads((tmp_path / "evalviews-8cm" / "evalviews.json").read_text())["methods"]
+    for row, method in (("posterior, ray cast", "bftaichi"), ("tsdf, tsdf_mesh.ply", "tsdf")):
+        line = next(ln for ln in out.splitlines() if ln.startswith(row))
+        mean_mm, pixels = line[len(row):].split()[:2]
+        assert int(pixels.strip("(").replace(",", "")) == scored[method]["pixels"]
+        assert float(mean_mm) == pytest.approx(1000 * scored[method]["mean_abs_m"], abs=0.006)
+    assert "mesh.ply:" in out and "tsdf_mesh.ply:" in out
 
 
 def test_sigma_breakdown_compares_bulk_and_mean_square():

@@ -55,6 +55,12 @@ def main(argv=None) -> int:
     ds = open_dataset(args.data)
     observed = (post.weight > 0).astype(np.uint8)
     front = behind = tsdf_only = pixels = 0
+    # the mean error split by where the two methods are more than 5 cm off: pixels, and the
+    # sums of |error| of the posterior and of the TSDF (metres)
+    groups = {name: [0, 0.0, 0.0] for name in ("both within 5 cm", "posterior only off",
+                                                "TSDF only off", "both off")}
+    worse = {"posterior": [0, 0, 0], "TSDF": [0, 0, 0]}  # both off, worse by > 1 cm: all, both
+    # in front of the measurement, both behind it
     hits = {"gross, in front": [], "within 1 cm": []}
     for i in range(1, min(args.frames, len(ds)), args.every):
         fr = ds[i]
@@ -73,6 +79,19 @@ def main(argv=None) -> int:
         behind += int(np.sum(post_only & (e > 0)))
         tsdf_only += int(np.sum(both & (np.abs(et) > 0.05) & (np.abs(e) < 0.02)))
         pixels += int(both.sum())
+        a, b = np.abs(e), np.abs(et)
+        for name, sel in zip(groups, (both & (a <= 0.05) & (b <= 0.05),
+                                      both & (a > 0.05) & (b <= 0.05),
+                                      both & (a <= 0.05) & (b > 0.05),
+                                      both & (a > 0.05) & (b > 0.05))):
+            groups[name][0] += int(sel.sum())
+            groups[name][1] += float(a[sel].sum())
+            groups[name][2] += float(b[sel].sum())
+        off = both & (a > 0.05) & (b > 0.05)
+        for who, sel in (("posterior", off & (a > b + 0.01)), ("TSDF", off & (b > a + 0.01))):
+            worse[who][0] += int(sel.sum())
+            worse[who][1] += int(np.sum(sel & (e < 0) & (et < 0)))
+            worse[who][2] += int(np.sum(sel & (e > 0) & (et > 0)))
         if args.carve:
             K_inv = np.linalg.inv(fr.K)
             for name, sel in (("gross, in front", post_only & (e < 0)),
@@ -85,6 +104,14 @@ def main(argv=None) -> int:
     print(f"{pixels} pixels where all three have depth; posterior > 5 cm off while the TSDF is "
           f"within 2 cm: {front} in front of the measured depth, {behind} behind; the TSDF > 5 cm "
           f"off while the posterior is within 2 cm: {tsdf_only}")
+    print("the mean absolute error split by where each method is more than 5 cm off "
+          "(share of the pixels; mm of the mean of the posterior / of the TSDF):")
+    for name, (n, sp, st) in groups.items():
+        print(f"  {name:20s} {100 * n / max(pixels, 1):6.2f} %  {1000 * sp / max(pixels, 1):7.2f}"
+              f" / {1000 * st / max(pixels, 1):7.2f}")
+    for who, (n, f_, b_) in worse.items():
+        print(f"  both off, the {who} worse by more than 1 cm: {n} pixels ({f_} with both in "
+              f"front of the measurement, {b_} with both behind it)")
     if args.carve:
         from kernels.carve import FreeSpaceCounter
 
