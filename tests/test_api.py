@@ -103,6 +103,7 @@ def test_the_slam_example_runs_and_its_update_equals_re_fusing():
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "update_poses moved 2 frames" in proc.stdout
     assert "equals re-fusing all 6 frames bitwise: True" in proc.stdout
+    assert "posterior after the update equals the re-fused one's bitwise: True" in proc.stdout
 
 
 def test_robust_curvature_prior_tends_to_the_gaussian_one_and_changes_the_mean(tiny):

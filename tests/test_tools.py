@@ -153,3 +153,16 @@ def test_suite_diff_shows_what_moved_and_the_targets_of_both(tmp_path):
     assert "70 / 95 / 99.0 -> 82 / 95 / 99.0" in listed[0] and "| - -> cov1 |" in listed[0]
     same = _run([TOOLS / "suite_diff.py", tmp_path / "old.json", tmp_path / "old.json"])
     assert "no case moved" in same
+
+
+def test_bench_pose_update_checks_exactness_on_real_frames():
+    data = SHARED / "rgbd" / "7scenes-redkitchen"
+    if not data.exists():
+        pytest.skip(f"{data} not found")
+    out = _run([TOOLS / "bench_pose_update.py", "--frames", "8", "--moved", "2", "--voxel",
+                "0.08", "--repeats", "1"])
+    # the updated TSDF equals re-fusing every frame at its corrected pose, bit for bit
+    assert "2 poses: updated TSDF bitwise equal to the re-fused one: True" in out
+    assert "2 poses, the solve after the update: band" in out
+    assert "posterior: max |mean difference| 0.00e+00 voxel" in out  # the solve after it too
+    assert len([ln for ln in out.splitlines() if "-> ratio" in ln]) == 2  # TSDF only, + solve
