@@ -49,6 +49,9 @@ def main(argv=None) -> int:
     roi = region_of_interest(post.ijk, post.voxel_size, cfg.nbv.roi_scale, scene.target,
                              post.origin)
     grid = coverage_grid(cfg, *roi, cfg.tsdf.voxel_size_m)
+    for c in views:  # what the fused views saw, as a scan marks it (bftaichi.planning.scan)
+        f = scene.frame(c)
+        grid.mark(f.depth_m, f.K, f.T_W_C, stride=cfg.observation.stride)
     warm = Planner(post, cfg, scene.K, scene.size, grid)  # compiles the planner's kernels
     warm.predict_depth(scene.poses[0])
     warm.utility(scene.poses[0])
