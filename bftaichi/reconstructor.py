@@ -177,9 +177,9 @@ class Reconstructor:
     def solve(self, frames=None, *, variance: bool = True, frame_iter=None) -> Posterior:
         """Steps 2-6 on everything integrated so far: the band, the observations of ``frames``
         (default: the kept frames; a dataset with ``len`` and indexing), the GMRF prior, the PCG
-        MAP (warm-started from the last solve, unless frames were moved or removed since) and, unless ``variance=False``, the probe
-        variance and face-neighbour covariance (else ``var`` is ``1/Q_ii``, a lower bound, and
-        ``cov`` None). ``frame_iter(frames, desc)``
+        MAP (warm-started from the last solve, unless frames were moved or removed since) and,
+        unless ``variance=False``, the probe variance and face-neighbour covariance (else
+        ``var`` is ``1/Q_ii``, a lower bound, and ``cov`` None). ``frame_iter(frames, desc)``
         yields the frames of the observation pass (the pipeline's prefetching reader). Frames
         hold world poses; they are moved into the local frame of :attr:`origin` as they are
         read. Raises NoSurfaceError when no voxel was observed."""
@@ -220,9 +220,10 @@ class Reconstructor:
         return fit_noise(self.config, band, frames)
 
     def _solve_band(self, band, x0, frames, variance: bool, frame_iter, lap) -> dict:
-        """Steps 3-6 on ``band`` (start ``x0``, warm-started from the last posterior)."""
-        if self._warm() is not None:
-            x0 = self.posterior.warm_start(band.ijk, x0)
+        """Steps 3-6 on ``band`` (start ``x0``, or the last posterior's mean: :meth:`_warm`)."""
+        prev = self._warm()
+        if prev is not None:
+            x0 = prev.warm_start(band.ijk, x0)
         return solve_band(self.config, band, x0, frames, variance, frame_iter, lap)
 
     def _solve_chunked(self, frames, variance: bool, frame_iter, lap) -> Posterior:
@@ -270,8 +271,9 @@ class Reconstructor:
                                       local=local)
 
     def save(self, out_dir: str | os.PathLike) -> Path:
-        """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma`` and ``sigma_pos``) and
-        ``band.npz`` into ``out_dir`` (created; files written atomically); return the folder."""
+        """Write ``tsdf_mesh.ply`` and, after :meth:`solve`, ``mesh.ply`` (with ``sigma`` and
+        ``sigma_pos``) and ``band.npz`` into ``out_dir`` (created; files written atomically);
+        return the folder."""
         from .io import ensure_out_dir, write_mesh_ply
         from .running.folder import staged
 

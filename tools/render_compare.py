@@ -48,7 +48,8 @@ def small_components(vertices, faces, max_faces: int = 8) -> tuple[int, int, int
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("run", type=Path, help="evalviews run folder (band.npz, mesh.ply, tsdf_mesh.ply)")
+    ap.add_argument("run", type=Path,
+                    help="evalviews run folder (band.npz, mesh.ply, tsdf_mesh.ply)")
     ap.add_argument("--data", default=str(DATA), help="the dataset the run fused")
     ap.add_argument("--frames", type=int, default=500, help="first N frames of the dataset")
     ap.add_argument("--every", type=int, default=10, help="frame step from frame 1 (odd "
