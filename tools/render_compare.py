@@ -46,6 +46,29 @@ def small_components(vertices, faces, max_faces: int = 8) -> tuple[int, int, int
     return len(sizes), int(small.sum()), int(sizes[small].sum())
 
 
+def isolated_negative(ijk, field, observed):
+    """Observed voxels with ``field < 0`` whose 6 face neighbours are all positive or outside
+    the band: (N,) bool. The mesh closes a small shell around such a voxel unless a diagonal
+    neighbour is negative too."""
+    import numpy as np
+
+    from kernels.layout import block_key_np
+
+    ijk = np.asarray(ijk, np.int64)
+    keys = block_key_np(ijk)
+    order = np.argsort(keys)
+    alone = observed & (field < 0)
+    for axis in range(3):
+        for step in (-1, 1):
+            q = ijk.copy()
+            q[:, axis] += step
+            k = block_key_np(q)
+            pos = np.clip(np.searchsorted(keys[order], k), 0, len(keys) - 1)
+            there = keys[order][pos] == k
+            alone &= ~there | (field[order[pos]] > 0)
+    return alone
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("run", type=Path,
@@ -113,6 +136,17 @@ def main(argv=None) -> int:
         a = f"{1000 * own[n][1] / max(own[n][0], 1):.2f} ({own[n][0]:,d} px)"
         b = f"{1000 * common[n][1] / max(common[n][0], 1):.2f} ({common[n][0]:,d} px)"
         print(f"{n:22s} {a:>24s} {b:>26s}")
+    vs, tsdf, seen = post.voxel_size, np.asarray(post.tsdf, np.float32), post.weight > 0
+    free = seen & (tsdf > post.trunc_m)
+    alone = isolated_negative(post.ijk, post.mean, seen)
+    print(f"band: {int(np.sum(free & (post.mean < 0))):,} voxels the bootstrap calls free (tsdf > "
+          f"tau) have a negative mean; negative voxels whose 6 neighbours are positive: "
+          f"posterior {int(alone.sum()):,}, TSDF "
+          f"{int(isolated_negative(post.ijk, tsdf, seen).sum()):,}")
+    if alone.any():
+        print(f"  at the posterior's: median TSDF {np.median(tsdf[alone]) / vs:+.2f} voxel, "
+              f"bootstrap weight {np.median(post.weight[alone]):.0f}, mean "
+              f"{np.median(post.mean[alone]) / vs:+.2f} voxel")
     for m, (v, f) in meshes.items():
         n, small, faces = small_components(v, f)
         print(f"{m}: {len(f):,} faces in {n:,} components; {small:,} of them have at most 8 "
