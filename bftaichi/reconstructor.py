@@ -190,17 +190,15 @@ class Reconstructor:
                                  "the depth range, the depth scale and that poses are T_W_C")
         lap = Lap()
         if cfg.run.chunk_m > 0:
-            self.posterior = self._solve_chunked(frames, variance, frame_iter, lap)
-            self._cold = False
-            return self.posterior
-        band, x0 = build_band(self.voxels, cfg.tsdf.bootstrap_trunc_m)               # step 2
-        lap.collect = len(band) >= _COLLECT_MIN
-        lap("band")
-        part = self._solve_band(band, x0, frames, variance, frame_iter, lap)
-        self.posterior = Posterior(band=band, **part, **self._posterior_fields(),
-                                   seconds=lap.seconds)
-        self._cold = False
-        return self.posterior
+            post = self._solve_chunked(frames, variance, frame_iter, lap)
+        else:
+            band, x0 = build_band(self.voxels, cfg.tsdf.bootstrap_trunc_m)           # step 2
+            lap.collect = len(band) >= _COLLECT_MIN
+            lap("band")
+            part = self._solve_band(band, x0, frames, variance, frame_iter, lap)
+            post = Posterior(band=band, **part, **self._posterior_fields(), seconds=lap.seconds)
+        self.posterior, self._cold = post, False
+        return post
 
     def _posterior_fields(self) -> dict:
         cfg = self.config

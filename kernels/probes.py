@@ -97,9 +97,12 @@ def probe_vectors(n: int, n_probes: int, seed: int = 0, *, method: str,
 #: columns of the neighbour covariance :func:`probe_variance` returns.
 FACE_PLUS = (22, 16, 14)
 
+#: Default relative residual of the probe solves (``solver.probe_tol``; docs/measurements.md).
+PROBE_TOL = 1e-3
+
 
 def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
-                   tol: float = 1e-3, maxiter: int = 1000, ijk=None, far=None) -> tuple:
+                   tol: float = PROBE_TOL, maxiter: int = 1000, ijk=None, far=None) -> tuple:
     """``(s, info)`` of :func:`probe_moments` (the same arguments), without the covariances."""
     s, _, info = probe_moments(S, nbr, n_probes, seed, method=method, tol=tol, maxiter=maxiter,
                                ijk=ijk, far=far)
@@ -107,7 +110,7 @@ def probe_variance(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
 
 
 def probe_moments(S, nbr, n_probes: int = 16, seed: int = 0, *, method: str,
-                  tol: float = 1e-3, maxiter: int = 1000, ijk=None, far=None,
+                  tol: float = PROBE_TOL, maxiter: int = 1000, ijk=None, far=None,
                   check: bool = True) -> tuple:
     """Stochastic estimate of the posterior variance ``s ~= diag(Q^-1)`` (DESIGN.md 3.6) and
     of each voxel's covariance with its +x, +y, +z neighbours (DESIGN.md 3.7: the variance
@@ -203,7 +206,7 @@ def _covariance(Z: ti.types.ndarray(dtype=ti.f32, ndim=2),
                 cov[i, e] = ti.cast(0.5 * (from_i / den[i] + from_j / den[j]), ti.f32)
 
 
-def perturbation_moments(S, nbr, W, n_probes: int = 16, seed: int = 0, *, tol: float = 1e-3,
+def perturbation_moments(S, nbr, W, n_probes: int = 16, seed: int = 0, *, tol: float = PROBE_TOL,
                          maxiter: int = 1000, far=None) -> tuple:
     """Monte Carlo estimate of the diagonal and face covariances of ``Q^-1 D Q^-1``: the
     covariance of the MAP's error under the measurement noise alone (the *sandwich*), where

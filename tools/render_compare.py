@@ -55,17 +55,15 @@ def isolated_negative(ijk, field, observed):
     from kernels.layout import block_key_np
 
     ijk = np.asarray(ijk, np.int64)
-    keys = block_key_np(ijk)
-    order = np.argsort(keys)
+    keys = block_key_np(ijk)  # a band's voxels are sorted: ascending keys
     alone = observed & (field < 0)
     for axis in range(3):
         for step in (-1, 1):
             q = ijk.copy()
             q[:, axis] += step
             k = block_key_np(q)
-            pos = np.clip(np.searchsorted(keys[order], k), 0, len(keys) - 1)
-            there = keys[order][pos] == k
-            alone &= ~there | (field[order[pos]] > 0)
+            pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
+            alone &= (keys[pos] != k) | (field[pos] > 0)
     return alone
 
 
