@@ -4,6 +4,7 @@ particle example on a fused scene."""
 
 import importlib.util
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -240,3 +241,20 @@ def test_a_kernel_error_still_names_its_file_line_and_code():
     line = 1 + next(i for i, text in enumerate(source) if "= undefined_name_in_kernel" in text)
     assert Path(__file__).name in msg and f"line {line}" in msg, msg
     assert "out[i] = undefined_name_in_kernel" in msg, msg
+
+
+@pytest.mark.parametrize("setting, expected", [(None, "False"), ("full", "True")])
+def test_init_compiles_without_taichis_advanced_passes_unless_asked(setting, expected):
+    """bftaichi.init turns Taichi's advanced IR passes off (half of a cold run's compilation,
+    no run time bought: bftaichi.backend._advanced_optimization); BFTAICHI_TAICHI_OPT=full
+    brings them back."""
+    env = {k: v for k, v in os.environ.items() if k != "BFTAICHI_TAICHI_OPT"}
+    if setting is not None:
+        env["BFTAICHI_TAICHI_OPT"] = setting
+    code = ("import bftaichi, taichi as ti\n"
+            "bftaichi.init()\n"
+            "print(ti.lang.impl.current_cfg().advanced_optimization)\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         timeout=120, env=env)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == expected

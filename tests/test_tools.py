@@ -38,12 +38,17 @@ def test_bench_render_reports_frame_rate():
 
 
 def test_bench_startup_reports_cold_and_warm():
-    out = _run([TOOLS / "bench_startup.py", "--repeats", "1", "--ab",
+    out = _run([TOOLS / "bench_startup.py", "--repeats", "1", "--kernels", "2", "--ab",
                 "BFTAICHI_TAICHI_POSITIONS=full", "--", "run", "scenes/default.toml",
                 *[a for s in TINY_SCENE_SETS for a in ("--set", s)]])
     assert "cold (empty Taichi cache)" in out and "warm (offline cache)" in out
+    assert "cold, BFTAICHI_TAICHI_POSITIONS=full: median" in out
     assert "warm, BFTAICHI_TAICHI_POSITIONS=full: median" in out
     assert "warm, BFTAICHI_TAICHI_POSITIONS unset: median" in out
+    # the two slowest first calls of each variant, cold and warm
+    assert "first calls, BFTAICHI_TAICHI_POSITIONS unset: cold" in out
+    rows = [line for line in out.splitlines() if line.startswith("| kernels.")]
+    assert len(rows) == 4, out
 
 
 @pytest.mark.skipif(not (SHARED / "rgbd" / "7scenes-redkitchen").is_dir(),

@@ -7,15 +7,23 @@ compiled), then again with the cache the first run filled (warm), and prints bot
     python tools/bench_startup.py                      # bftaichi run (the default scene)
     python tools/bench_startup.py --repeats 3 -- run scenes/seed_sphere.toml
     python tools/bench_startup.py --repeats 5 --ab BFTAICHI_TAICHI_POSITIONS=full
+    python tools/bench_startup.py --repeats 3 --ab BFTAICHI_TAICHI_OPT=full
 
-``--ab NAME=VALUE`` then times ``--repeats`` warm runs with that environment variable set and
-as many without, alternating (the same filled cache), and prints both with their medians: an
-A/B of a start-up setting on a shared machine.
+``--ab NAME=VALUE`` then times ``--repeats`` cold and warm runs with that environment variable
+set and as many without, alternating (each cold run on its own empty cache, the warm run after
+it on the cache it filled), and prints both with their medians: an A/B of a start-up setting
+on a shared machine.
+
+``--kernels N`` then runs the command once more cold and warm (each variant), with each
+kernel's first call timed (its compilation, or its load from the offline cache, and its first
+run), and prints the N slowest: where a cold start goes. Those runs are not in the figures
+above (the timing wrapper is not free).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
@@ -23,6 +31,50 @@ import subprocess
 import sys
 import tempfile
 import time
+
+
+#: Run the command line with the first call of every Taichi kernel timed; the seconds go, as
+#: JSON {module.kernel: seconds}, to the file named by the first argument.
+_FIRST_CALLS = """
+import atexit, json, sys, time
+import taichi.lang.kernel_impl as ki
+first, call = {}, ki.Kernel.__call__
+def timed(self, *a, **k):
+    name = f"{self.func.__module__}.{self.func.__name__}"
+    if name in first:
+        return call(self, *a, **k)
+    t0 = time.perf_counter()
+    try:
+        return call(self, *a, **k)
+    finally:
+        first[name] = time.perf_counter() - t0
+ki.Kernel.__call__ = timed
+path = sys.argv.pop(1)
+atexit.register(lambda: open(path, "w").write(json.dumps(first)))
+import bftaichi.cli
+sys.argv[0] = "bftaichi"
+bftaichi.cli.main()
+"""
+
+
+def _first_calls(args: list[str], env: dict) -> tuple[dict, dict]:
+    """Each kernel's first-call seconds in a cold run and in the warm run after it."""
+    cache, out = tempfile.mkdtemp(prefix="ti-cache-"), tempfile.mkdtemp(prefix="bftaichi-out-")
+    env = dict(env, TI_OFFLINE_CACHE_FILE_PATH=cache)
+    found = []
+    try:
+        for _ in range(2):
+            path = os.path.join(out, "first_calls.json")
+            cmd = [sys.executable, "-c", _FIRST_CALLS, path, *args, "--out",
+                   os.path.join(out, "run"), "--overwrite", "--quiet"]
+            subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.PIPE)
+            with open(path) as f:
+                found.append(json.load(f))
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+        shutil.rmtree(out, ignore_errors=True)
+    return found[0], found[1]
 
 
 def _time(cmd: list[str], env: dict) -> float:
@@ -37,37 +89,57 @@ def main(argv=None) -> int:
     ap.add_argument("command", nargs="*", default=["run"],
                     help="bftaichi arguments (after --), default: run")
     ap.add_argument("--ab", metavar="NAME=VALUE",
-                    help="also time warm runs with and without this environment variable")
+                    help="time cold and warm runs with and without this environment variable, "
+                         "alternating")
+    ap.add_argument("--kernels", type=int, default=0, metavar="N",
+                    help="also print the N kernels whose first call takes longest, cold and warm")
     args = ap.parse_args(argv)
     if args.ab is not None and "=" not in args.ab:
         ap.error(f"--ab {args.ab!r}: expected NAME=VALUE")
     exe = [sys.executable, "-m", "bftaichi.cli"]
-    cold, warm, with_var, without = [], [], [], []
-    for i in range(args.repeats):
-        cache = tempfile.mkdtemp(prefix="ti-cache-")
-        out = tempfile.mkdtemp(prefix="bftaichi-out-")
-        env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=cache)
-        cmd = exe + args.command + ["--out", out, "--overwrite", "--quiet"]
-        try:
-            cold.append(_time(cmd, env))
-            warm.append(_time(cmd, env))
-            if args.ab is not None and i == 0:  # the A/B: warm runs on this filled cache
-                name, value = args.ab.split("=", 1)
-                for _ in range(args.repeats):
-                    with_var.append(_time(cmd, dict(env, **{name: value})))
-                    without.append(_time(cmd, {k: v for k, v in env.items() if k != name}))
-        finally:
-            shutil.rmtree(cache, ignore_errors=True)
-            shutil.rmtree(out, ignore_errors=True)
+    base = dict(os.environ)
+    if args.ab is not None:
+        name, value = args.ab.split("=", 1)
+        base.pop(name, None)
+        variants = {f"{args.ab}": dict(base, **{name: value}), f"{name} unset": base}
+    else:
+        variants = {"": base}
+    times = {label: ([], []) for label in variants}  # label -> (cold, warm)
+    for _ in range(args.repeats):
+        for label, env in variants.items():  # alternating: the machine's drift hits both
+            cache = tempfile.mkdtemp(prefix="ti-cache-")
+            out = tempfile.mkdtemp(prefix="bftaichi-out-")
+            env = dict(env, TI_OFFLINE_CACHE_FILE_PATH=cache)
+            cmd = exe + args.command + ["--out", out, "--overwrite", "--quiet"]
+            try:
+                times[label][0].append(_time(cmd, env))
+                times[label][1].append(_time(cmd, env))
+            finally:
+                shutil.rmtree(cache, ignore_errors=True)
+                shutil.rmtree(out, ignore_errors=True)
+
+    def _all(ts):
+        return ", ".join(f"{t:.2f}" for t in ts)
+
     print(f"command: bftaichi {' '.join(args.command)}")
-    print(f"cold (empty Taichi cache): {min(cold):.2f} s   (all: {', '.join(f'{t:.2f}' for t in cold)})")
-    print(f"warm (offline cache):      {min(warm):.2f} s   (all: {', '.join(f'{t:.2f}' for t in warm)})")
+    cold, warm = times[next(iter(times))] if args.ab is None else times[f"{name} unset"]
+    if args.ab is not None:
+        print(f"(without {name}:)")
+    print(f"cold (empty Taichi cache): {min(cold):.2f} s   (all: {_all(cold)})")
+    print(f"warm (offline cache):      {min(warm):.2f} s   (all: {_all(warm)})")
     print(f"JIT overhead saved by the cache: {min(cold) - min(warm):.2f} s")
     if args.ab is not None:
-        name = args.ab.split("=", 1)[0]
-        for label, times in ((f"warm, {args.ab}", with_var), (f"warm, {name} unset", without)):
-            print(f"{label}: median {statistics.median(times):.2f} s   "
-                  f"(all: {', '.join(f'{t:.2f}' for t in times)})")
+        for label, (c, w) in times.items():
+            print(f"cold, {label}: median {statistics.median(c):.2f} s   (all: {_all(c)})")
+            print(f"warm, {label}: median {statistics.median(w):.2f} s   (all: {_all(w)})")
+    if args.kernels > 0:
+        firsts = {label: _first_calls(args.command, env) for label, env in variants.items()}
+        for label, (cold_k, warm_k) in firsts.items():
+            print(f"\nfirst calls{', ' + label if label else ''}: cold {sum(cold_k.values()):.2f} s, "
+                  f"warm {sum(warm_k.values()):.2f} s over {len(cold_k)} kernels; the slowest:")
+            print("| kernel | cold (s) | warm (s) |\n|---|---|---|")
+            for k in sorted(cold_k, key=cold_k.get, reverse=True)[:args.kernels]:
+                print(f"| {k} | {cold_k[k]:.2f} | {warm_k.get(k, float('nan')):.2f} |")
     return 0
 
 
