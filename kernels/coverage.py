@@ -12,7 +12,10 @@ the cells that only touch it there: ties step one axis at a time, x before y bef
 
 Cost (2-core EPYC, both threads): a CoverageGrid of 100^3 1 cm cells takes ~4 ms to mark a
 160x120 frame and ~12 ms to count a 160x120 view whose rays run to the box exit (stamps are
-integer atomics).
+integer atomics). A step of the walk computes the next face's depth of the stepped axis only
+(the other two do not change): one float64 division a step instead of three, the same values.
+That cut counting the bowl's 48 candidates (``tools/bench_scan_step.py scenes/bowl.toml``)
+from ~13 to ~5.7 ms a candidate, each view's counts unchanged.
 
 Determinism: every kernel here is one thread per pixel with stores of one value (``seen = 1``)
 or integer atomics (``stamp`` maximum, counts), so all results are bitwise reproducible
@@ -59,6 +62,11 @@ def _walk_cells(prm: ti.template(), u: ti.i32, v: ti.i32, z_end: ti.f64, seen: t
             if m[a] < 0 and ti.cast(c[a], ti.f64) == p[a]:
                 c[a] -= 1
         c = ti.min(ti.max(c, 0), n - 1)  # entry cell (rounding at the box faces)
+        # t_next[a]: depth of the next face crossed along axis a. It depends on c[a] alone, so
+        # a step recomputes only the stepped axis's (the same expression: the same bits)
+        t_next = ti.Vector([NO_FACE, NO_FACE, NO_FACE], dt=ti.f64)
+        for a in ti.static(range(3)):
+            t_next[a] = _next_face(o[a], m[a], c[a])
         for _ in range(n[0] + n[1] + n[2] + 1):  # a segment crosses at most nx+ny+nz+1 cells
             if ti.static(counting and tally):
                 found += ti.select(seen[c[0], c[1], c[2]] == 0, TALLY, 1)
@@ -71,13 +79,6 @@ def _walk_cells(prm: ti.template(), u: ti.i32, v: ti.i32, z_end: ti.f64, seen: t
                         break
             else:
                 seen[c[0], c[1], c[2]] = ti.u8(1)
-            # t_next[a]: depth of the next face crossed along axis a
-            t_next = ti.Vector([NO_FACE, NO_FACE, NO_FACE], dt=ti.f64)
-            for a in ti.static(range(3)):
-                if m[a] > 0:
-                    t_next[a] = (ti.cast(c[a] + 1, ti.f64) - o[a]) / m[a]
-                elif m[a] < 0:
-                    t_next[a] = (ti.cast(c[a], ti.f64) - o[a]) / m[a]
             axis, t = 0, t_next[0]  # the axis whose face comes first (ties: x, then y, z)
             if t_next[1] < t:
                 axis, t = 1, t_next[1]
@@ -90,9 +91,22 @@ def _walk_cells(prm: ti.template(), u: ti.i32, v: ti.i32, z_end: ti.f64, seen: t
                 if a == axis:
                     c[a] += ti.select(m[a] > 0, 1, -1)
                     inside = ti.cast((c[a] >= 0) & (c[a] < n[a]), ti.i32)
+                    t_next[a] = _next_face(o[a], m[a], c[a])
             if not inside:
                 break
     return found
+
+
+@ti.func
+def _next_face(o_a: ti.f64, m_a: ti.f64, c_a: ti.i32) -> ti.f64:
+    """Camera depth at which the ray ``o + z m`` leaves cell index ``c_a`` along one axis
+    (``NO_FACE`` when it runs parallel to that axis's faces)."""
+    t = ti.f64(NO_FACE)
+    if m_a > 0:
+        t = (ti.cast(c_a + 1, ti.f64) - o_a) / m_a
+    elif m_a < 0:
+        t = (ti.cast(c_a, ti.f64) - o_a) / m_a
+    return t
 
 
 @ti.kernel
