@@ -14,8 +14,8 @@ Cost (2-core EPYC, both threads): a CoverageGrid of 100^3 1 cm cells takes ~4 ms
 160x120 frame and ~12 ms to count a 160x120 view whose rays run to the box exit (stamps are
 integer atomics). A step of the walk computes the next face's depth of the stepped axis only
 (the other two do not change): one float64 division a step instead of three, the same values.
-That cut counting the bowl's 48 candidates (``tools/bench_scan_step.py scenes/bowl.toml``)
-from ~13 to ~5.7 ms a candidate, each view's counts unchanged.
+Ranking the bowl's 48 candidates (``python tools/bench_scan_step.py scenes/bowl.toml --extra
+6``, two runs each, alternating) went from 0.81 / 0.74 s to 0.49 / 0.59 s, every count the same.
 
 Determinism: every kernel here is one thread per pixel with stores of one value (``seen = 1``)
 or integer atomics (``stamp`` maximum, counts), so all results are bitwise reproducible
