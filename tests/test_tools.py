@@ -128,6 +128,22 @@ def test_sigma_breakdown_compares_bulk_and_mean_square():
     assert 0 < c1 <= c2 <= c3 <= 100
 
 
+def test_thin_parts_finds_a_sheet_thinner_than_the_radius():
+    """sigma_breakdown.thin_parts: a 2 mm thick slab is thin within 3 mm of its faces, a 10 cm
+    sphere is not anywhere."""
+    import numpy as np
+    import trimesh
+
+    sys.path.insert(0, str(TOOLS))
+    from sigma_breakdown import thin_parts
+
+    slab = trimesh.creation.box((0.1, 0.1, 0.002))
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    on_slab = np.array([[0.0, 0.0, 0.001], [0.03, -0.02, -0.001]])
+    assert thin_parts(on_slab, slab, 0.003, n_samples=50_000).all()
+    assert not thin_parts(ball.vertices[:50], ball, 0.003, n_samples=50_000).any()
+
+
 def test_sigma_breakdown_takes_a_synthetic_scene_file():
     out = _run([TOOLS / "sigma_breakdown.py", "scenes/seed_sphere.toml",
                 "--set", "synthetic.n_views=4"])

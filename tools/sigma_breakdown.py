@@ -7,7 +7,8 @@ median and the RMS of the errors against those of sigma (a Gaussian sigma has ``
 0.674 sigma`` and ``RMS e = sigma``), the coverage at 1 / 2 / 3 sigma, and, on the voxels
 within one voxel of the mean's surface, what the variance is made of: the probe variance
 before the local-noise step and the misfit term ``b^2`` (bftaichi/stages/bandsolve.py), with
-the data's median chi2 over the band; and the 5 % largest errors against the rest
+the data's median chi2 over the band; the 5 % largest errors against the rest; and the
+vertices by kind: smooth, creased, on the mesh's boundary, near a thin part of the true surface
 (:func:`tail`)::
 
     python tools/sigma_breakdown.py homer few_views
@@ -91,16 +92,32 @@ def main(argv=None) -> int:
               f"{seen['chi2']:.3f}, b^2 > 0 on {100 * np.mean(b2 > 0):.0f} %, "
               f"b^2 / final variance median {np.median(b2 / post.var[near]):.2f}")
     print(f"  fitted noise: extra {post.sigma_extra_m * mm:.3f} mm, shared {post.sigma_corr_m * mm:.3f} mm")
-    tail(mesh, err, sigma, gt)
+    tail(mesh, err, sigma, gt, cfg.tsdf.voxel_size_m)
     return 0
 
 
-def tail(mesh, err: np.ndarray, sigma: np.ndarray, gt) -> None:
+def thin_parts(vertices: np.ndarray, gt, radius_m: float, n_samples: int = 400_000) -> np.ndarray:
+    """(V,) bool: the true surface ``gt`` faces both ways within ``radius_m`` of the vertex
+    (two of its area samples there, seed 0, have normals more than 120 degrees apart): a sheet
+    or a gap thinner than about ``2 radius_m``, which one voxel grid cannot hold on both sides."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    pts, face = trimesh.sample.sample_surface(gt, n_samples, seed=0)
+    normals = gt.face_normals[face]
+    near = cKDTree(pts).query_ball_point(np.asarray(vertices, np.float64), radius_m)
+    return np.array([len(ix) > 1 and float((normals[ix] @ normals[ix[0]]).min()) < -0.5
+                     for ix in near], bool)
+
+
+def tail(mesh, err: np.ndarray, sigma: np.ndarray, gt, voxel_m: float | None = None) -> None:
     """The 5 % largest errors against the rest: sigma and two features of the mesh itself, the
     mean angle between a vertex's normal and its neighbours' (a crease or a crumpled patch) and
     lying on the mesh boundary (the edge of what was observed); Spearman of each with the error;
     and on which side of the true mesh ``gt`` the tail lies (outside: a false surface in free
-    space; libigl's generalised winding number, so open meshes are judged too)."""
+    space; libigl's generalised winding number, so open meshes are judged too). Then the
+    coverage of the vertices by kind; with ``voxel_m``, also those near a thin part of the true
+    surface (:func:`thin_parts` within one voxel)."""
     import igl
     from scipy.stats import spearmanr
 
@@ -128,9 +145,13 @@ def tail(mesh, err: np.ndarray, sigma: np.ndarray, gt) -> None:
     print(f"    outside the true surface: {100 * (1 - inside.mean()):.1f} % of the tail")
     z = err / np.maximum(sigma, 1e-12)
     creased, edge = angle > 0.5, boundary > 0
-    for name, sel in (("smooth interior (normal angle <= 0.5 rad, not on the boundary)",
-                       ~creased & ~edge), ("creased (normal angle > 0.5 rad)", creased),
-                      ("on the boundary", edge)):
+    groups = [("smooth interior (normal angle <= 0.5 rad, not on the boundary)",
+               ~creased & ~edge), ("creased (normal angle > 0.5 rad)", creased),
+              ("on the boundary", edge)]
+    if voxel_m is not None:
+        groups.append(("near a thin part (the true surface faces both ways within a voxel)",
+                       thin_parts(mesh.vertices, gt, voxel_m)))
+    for name, sel in groups:
         if sel.any():
             print(f"  {name}: {int(sel.sum())} vertices, median error "
                   f"{np.median(err[sel]) * 1e3:.2f} mm, median sigma "
