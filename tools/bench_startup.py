@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     if args.ab is not None:
         name, value = args.ab.split("=", 1)
         base.pop(name, None)
-        variants = {f"{args.ab}": dict(base, **{name: value}), f"{name} unset": base}
+        variants = {args.ab: dict(base, **{name: value}), f"{name} unset": base}
     else:
         variants = {"": base}
     times = {label: ([], []) for label in variants}  # label -> (cold, warm)
@@ -135,8 +135,9 @@ def main(argv=None) -> int:
     if args.kernels > 0:
         firsts = {label: _first_calls(args.command, env) for label, env in variants.items()}
         for label, (cold_k, warm_k) in firsts.items():
-            print(f"\nfirst calls{', ' + label if label else ''}: cold {sum(cold_k.values()):.2f} s, "
-                  f"warm {sum(warm_k.values()):.2f} s over {len(cold_k)} kernels; the slowest:")
+            which = f", {label}" if label else ""
+            print(f"\nfirst calls{which}: cold {sum(cold_k.values()):.2f} s, warm "
+                  f"{sum(warm_k.values()):.2f} s over {len(cold_k)} kernels; the slowest:")
             print("| kernel | cold (s) | warm (s) |\n|---|---|---|")
             for k in sorted(cold_k, key=cold_k.get, reverse=True)[:args.kernels]:
                 print(f"| {k} | {cold_k[k]:.2f} | {warm_k.get(k, float('nan')):.2f} |")
