@@ -155,6 +155,16 @@ def pose_in_local(T_W_C, origin) -> np.ndarray:
     return T
 
 
+def nearest_rigid(T) -> np.ndarray:
+    """A (4, 4) float64 copy of pose ``T`` whose rotation is the nearest orthonormal matrix
+    (``U V^T`` of its SVD). Recorded poses are rigid to ~1e-4; the mesh renderer
+    (:class:`bftaichi.formats.synthetic.DepthRenderer`) wants 1e-6."""
+    T = np.array(T, np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = U @ Vt
+    return T
+
+
 def points_in_local(points_W, origin) -> np.ndarray:
     """World points (..., 3) in the local frame of ``origin`` (float64); ``points_W`` itself
     when ``origin`` is zero."""

@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     from bftaichi.backend import init
     from bftaichi.formats import open_dataset
     from bftaichi.formats.synthetic import DepthRenderer
-    from bftaichi.geometry import points_in_local, pose_in_local
+    from bftaichi.geometry import nearest_rigid, points_in_local, pose_in_local
     from bftaichi.io import read_mesh_ply
     from bftaichi.posterior import Posterior
     from kernels.raycast import raycast_depth
@@ -68,9 +68,7 @@ def main(argv=None) -> int:
         T = np.array(pose_in_local(fr.T_W_C, post.origin), np.float64)
         z = raycast_depth(post.band.block_keys, post.band.block_table, post.mean, observed,
                           post.voxel_size, fr.K, T, w, h, 0.1, 6.0)
-        U, _, Vt = np.linalg.svd(T[:3, :3])
-        T[:3, :3] = U @ Vt
-        zt = tsdf.render(fr.K, T, w, h)
+        zt = tsdf.render(fr.K, nearest_rigid(T), w, h)
         D = fr.depth_m
         both = (z > 0) & (D > 0) & (zt > 0)
         e, et = z - D, zt - D

@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     from bftaichi.backend import init
     from bftaichi.formats import open_dataset
     from bftaichi.formats.synthetic import DepthRenderer
-    from bftaichi.geometry import points_in_local, pose_in_local
+    from bftaichi.geometry import nearest_rigid, points_in_local, pose_in_local
     from bftaichi.io import read_mesh_ply
     from bftaichi.posterior import Posterior
     from kernels.raycast import raycast_depth
@@ -112,8 +112,7 @@ def main(argv=None) -> int:
         T = np.array(pose_in_local(fr.T_W_C, post.origin), np.float64)
         z = {n: raycast_depth(band.block_keys, band.block_table, f, observed, post.voxel_size,
                               fr.K, T, w, h, 0.1, 6.0) for n, f in fields.items()}
-        U, _, Vt = np.linalg.svd(T[:3, :3])
-        T[:3, :3] = U @ Vt  # the renderer wants a rotation to 1e-6
+        T = nearest_rigid(T)
         z["posterior, mesh.ply"] = renderers["mesh.ply"].render(fr.K, T, w, h)
         z["tsdf, tsdf_mesh.ply"] = renderers["tsdf_mesh.ply"].render(fr.K, T, w, h)
         D = fr.depth_m

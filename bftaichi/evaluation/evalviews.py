@@ -42,7 +42,7 @@ import numpy as np
 from ..config import Config
 from ..errors import ConfigError
 from ..frame import local_frames
-from ..geometry import mesh_in_local, pose_in_local
+from ..geometry import mesh_in_local, nearest_rigid, pose_in_local
 
 __all__ = ["evaluate_views", "split_frames"]
 
@@ -211,9 +211,7 @@ def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open
         cover["sigma_z_only"] += (np.abs(r)[None] <= k * s_pred).sum(1)
         cover["n"] += len(r)
         sigma_z_sum += float(s_pred.sum())
-        T = np.array(T_L_C, np.float64)
-        U, _, Vt = np.linalg.svd(T[:3, :3])  # recorded poses are rigid to ~1e-4; the
-        T[:3, :3] = U @ Vt  # renderer wants 1e-6
+        T = nearest_rigid(T_L_C)
         for name, renderer in renderers.items():
             scores[name].add(renderer.render(f.K, T, w, h), D)
     t_eval = time.perf_counter() - t2
