@@ -448,10 +448,9 @@ def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2
     """A frame's super-pixel pyramid in one launch (``prm``: its full-resolution parameters).
 
     Levels l = 1..``levels`` (``d1..d4``, blocks of ``k = 2^l`` pixels a side, the image
-    size divided by k and rounded down; the levels above ``levels`` are not used): the mean depth of each k x k block where all its pixels are valid and lie
-    on one surface, i.e. their depths differ by at most ``k tan(normal_max_slope) mean / fx``
-    (a surface inclined by at most the normal's slope limit; a larger jump is an occlusion
-    edge), else 0.
+    size divided by k and rounded down; the levels above ``levels`` are not used): the mean
+    depth of each k x k block whose pixels are valid and one plane within the frame's axial
+    noise (:func:`kernels.funcs.block_mean_depth`), else 0.
 
     Masks ``m0..m4`` (level 0 is the frame): 1 where the level observes the pixel (it is valid
     and spans at most ``prm[P_AGGREGATE]`` voxel footprints, ``k <= aggregate * f * voxel /
@@ -465,7 +464,8 @@ def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2
         k = ti.static(1 << lv)
         for by, bx in ti.ndrange(dl.shape[0], dl.shape[1]):
             if lv <= levels:
-                dl[by, bx] = block_mean_depth(depth, by, bx, k, reach)
+                dl[by, bx] = block_mean_depth(depth, by, bx, k, reach, prm[P_A], prm[P_B],
+                                              prm[P_Z0], True)
     for lv in ti.static(range(5)):
         ml = ti.static((m0, m1, m2, m3, m4)[lv])
         dl = ti.static((depth, d1, d2, d3, d4)[lv])

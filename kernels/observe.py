@@ -56,8 +56,12 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
    ``S[i, o] = S[nbr(i, o), 26 - o]`` for ``o < 13``, so the stencil is symmetric bit for bit.
 
 Super-pixels (``aggregate`` > 0, at stride 1): where a voxel spans many pixels, a k x k block
-of pixels (``k = 2^l``, l = 1..MAX_LEVEL) whose depths are all valid and lie on one surface (they
-differ by at most ``k tan(normal_max_slope) D / fx``) is observed as one pixel of the block
+of pixels (``k = 2^l``, l = 1..MAX_LEVEL) whose depths are all valid and lie on one planar
+surface (they differ by at most ``k tan(normal_max_slope) D / fx`` and deviate from their
+least-squares plane by at most PLANE_NOISE = 2 times the axial noise at D, RMS, a 2 x 2 block's
+plane fitted with its ring of pixels: :func:`kernels.funcs.block_mean_depth`; on a plane the
+block's mean depth is the surface at its centre, across a step, a crease or a bend it lies on
+no surface) is observed as one pixel of the block
 image (intrinsics ``fx / k``, ``(cx - (k - 1) / 2) / k``) at the block's mean depth: its
 normal from the neighbouring blocks, its samples and rows as above, and the information of its
 k^2 pixels (``w`` times k^2; each still counts ``sigma^2 + rho sigma_corr^2`` with ``rho`` in

@@ -475,6 +475,42 @@ def test_superpixels_keep_every_pixel_and_the_geometry():
     assert np.percentile(off["res"], 95) < 1e-4  # the reference: exact rows
 
 
+def test_superpixels_are_planar_blocks():
+    """A block of pixels is observed as one super-pixel only where it is one plane within the
+    sensor noise (kernels.funcs.block_mean_depth): on a tilted plane with the axial noise the
+    4 x 4 blocks form, and the blocks straddling a 3 cm step (well within the range test's
+    slope limit) are observed in smaller blocks, so no block's mean depth lies between the two
+    surfaces (also not a 2 x 2 block's, which is tested with its ring of pixels); every valid
+    pixel is still observed once."""
+    K = np.array([[200.0, 0, 79.5], [0, 200.0, 59.5], [0, 0, 1]])
+    v, u = np.mgrid[0:120, 0:160]
+    rng = np.random.default_rng(0)
+    noise = 0.0012 + 0.0019 * (1.0 - 0.4) ** 2  # the default axial model at 1 m
+    plane = 1.0 + 0.002 * (u - 80) + 0.001 * (v - 60)
+    # inside the 4 x 4 blocks of columns 80-83 and between the two columns of the 2 x 2
+    # blocks of columns 80-81, which four pixels alone would take for a plane
+    step = np.where(u >= 81, 0.03, 0.0)
+    obs = Band(shell(box_sdf, 2.5)).observer(aggregate=1.0, count_once="voxel",
+                                             front_m=2 * TRUNC)
+    for depth, straddle in ((plane, False), (plane + step, True)):
+        depth = (depth + rng.normal(0, noise, depth.shape)).astype(np.float32)
+        d, prm = obs._frame_params(depth, K, np.eye(4), None)
+        levels = {k: (img, mask) for img, mask, _, k in obs._levels(d, prm, 1)}
+        assert max(levels) == 4  # f voxel / depth = 6 pixels: blocks of up to 4 x 4
+        img4, mask4 = levels[4]
+        seen = sum(int((m == 1).sum()) * k * k for k, (_, m) in levels.items())
+        assert seen == depth.size  # every valid pixel once
+        assert (mask4 == 1).mean() > 0.95 if not straddle else (mask4 == 1).mean() > 0.9
+        col = mask4[:, 20]  # the blocks of columns 80-83
+        assert (col == 1).all() != straddle
+        if straddle:  # what a block observes is on one of the two surfaces
+            for k, (img, m) in levels.items():
+                if k > 1:
+                    vv, uu = np.nonzero(m == 1)
+                    ref = (plane + step)[vv * k + k // 2, uu * k + k // 2]
+                    assert np.abs(img[vv, uu] - ref).max(initial=0) < 0.01
+
+
 @pytest.mark.parametrize("count_once", ["pixel", "voxel"])
 def test_misfit_sums_match_a_reference_built_from_the_rows(sphere, count_once):
     """The misfit pass (which looks up only the samples near the surface, and the others only

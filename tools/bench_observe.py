@@ -11,12 +11,14 @@ integrating the same frame into the TSDF::
 
     python tools/bench_observe.py                              # redkitchen, 2 cm
     python tools/bench_observe.py --voxel 0.01 --timed 20
+    python tools/bench_observe.py --voxel 0.01 --set observation.aggregate=0.5
 
 Frames are preloaded (no PNG decoding is timed), kernels compiled before timing, the noise
 model is the default with no fitted extra noise. Printed: the median and best milliseconds
-per frame of each, and the ratios of the medians to the TSDF's (issue 16's target for the
-whole observation pass: at most 1.5x the TSDF). The machine may be shared: the three run
-interleaved, frame by frame.
+per frame of each, the ratios of the medians to the TSDF's (issue 16's target for the
+whole observation pass: at most 1.5x the TSDF), and the rays model's accepted samples per frame
+(the super-pixels of ``observation.aggregate`` set how many rays a frame casts). The machine may
+be shared: the four run interleaved, frame by frame.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ def main(argv=None) -> int:
     ap.add_argument("--voxel", type=float, default=0.02, help="voxel size, metres")
     ap.add_argument("--frames", type=int, default=500, help="fuse the first N frames")
     ap.add_argument("--timed", type=int, default=50, help="time this many of them, evenly spread")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="config override (repeatable), e.g. observation.aggregate=0.5")
     args = ap.parse_args(argv)
 
     import bftaichi as bf
@@ -46,7 +50,7 @@ def main(argv=None) -> int:
     from kernels.carve import FreeSpaceCounter
 
     cfg = bf.load_config(None, [f"tsdf.voxel_size_m={args.voxel}",
-                                f"tsdf.trunc_m={2 * args.voxel}"])
+                                f"tsdf.trunc_m={2 * args.voxel}", *args.sets])
     ds = bf.open_dataset(args.data, frames=slice(0, args.frames))
     recon = bf.Reconstructor(cfg)
     for f in ds:
@@ -68,6 +72,7 @@ def main(argv=None) -> int:
         obs.integrate(f0.depth_m, f0.K, f0.T_W_C)
     tsdf.integrate(f0.depth_m, f0.K, f0.T_W_C, name="warm-up")
     ms = {"tsdf": [], "rays": [], "voxels": [], "carve": []}
+    samples = {"rays": []}  # the voxel model observes voxels, not samples
     for n, i in enumerate(picks):
         f = frames[int(i)]
         t = time.perf_counter()
@@ -75,17 +80,22 @@ def main(argv=None) -> int:
         ms["tsdf"].append(1e3 * (time.perf_counter() - t))
         for model, obs in observers.items():
             t = time.perf_counter()
-            obs.integrate(f.depth_m, f.K, f.T_W_C)
+            counts = obs.integrate(f.depth_m, f.K, f.T_W_C)
             ms[model].append(1e3 * (time.perf_counter() - t))
+            if model in samples:
+                samples[model].append(counts["samples_accepted"])
         t = time.perf_counter()
         carve.add(f.depth_m, f.K, f.T_W_C)
         ms["carve"].append(1e3 * (time.perf_counter() - t))
     print(f"{args.voxel * 100:g} cm: band {len(band):,} voxels ({len(todo):,} counted for "
           f"free space), {len(picks)} of {len(frames)} frames timed (ms per frame)")
-    print("| | median | best | median / TSDF |\n|---|---|---|---|")
+    if args.sets:
+        print("overrides: " + " ".join(args.sets))
+    print("| | median | best | median / TSDF | samples per frame (mean) |\n|---|---|---|---|---|")
     base = float(np.median(ms["tsdf"]))
     for k, v in ms.items():
-        print(f"| {k} | {np.median(v):.1f} | {min(v):.1f} | {np.median(v) / base:.2f} |")
+        n = f"{np.mean(samples[k]):,.0f}" if k in samples else "-"
+        print(f"| {k} | {np.median(v):.1f} | {min(v):.1f} | {np.median(v) / base:.2f} | {n} |")
     return 0
 
 

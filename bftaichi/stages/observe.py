@@ -109,16 +109,17 @@ class ObservationConfig:
     docs/measurements.md). report.json: ``solver.variance.local_noise``.
     """
 
-    aggregate: float = 0.5
+    aggregate: float = 1.0
     """Super-pixels where a voxel spans many pixels (no unit; 0 = off): a k x k block of pixels
-    that lie on one surface is observed as one pixel at its mean depth carrying the information
-    of all k^2 (``k`` a power of two up to 16, at most ``aggregate`` voxel footprints ``f voxel
-    / depth`` pixels a side). Every valid pixel still counts, once; what the mean gives up is
-    where inside the block each ray met the surface. The cost of the observation pass then
-    grows with the voxels seen more than with the pixels. 0.5 (blocks of at most half a voxel)
-    costs under 1 % of Chamfer distance where it applies; 1.0 is ~1.5x faster on real 2 cm
-    frames and costs 3-5 %; where a voxel spans under 4 pixels (the development suite, the
-    default scene) 0.5 changes nothing. Measured in docs/measurements.md."""
+    that lie on one planar surface (within twice the sensor's noise,
+    :func:`kernels.funcs.block_mean_depth`) is observed as one pixel at its mean depth carrying
+    the information of all k^2 (``k`` a power of two up to 16, at most ``aggregate`` voxel
+    footprints ``f voxel / depth`` pixels a side). Every valid pixel still counts, once; on a
+    plane the block's mean is the surface at its centre, and where a block is not planar its
+    pixels are observed in smaller blocks or one by one. The cost of the observation pass then
+    grows with the voxels seen more than with the pixels: 1.0 (blocks of up to a voxel) is
+    2.1x faster than 0.5 on real 1 cm frames, and where a voxel spans under 2 pixels (the
+    development suite) it changes nothing. Measured in docs/measurements.md."""
 
     misfit_frames: int = 100
     """Frames the ``local_noise`` pass observes again: at most this many, evenly spread over
