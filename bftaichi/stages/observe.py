@@ -118,7 +118,7 @@ class ObservationConfig:
     plane the block's mean is the surface at its centre, and where a block is not planar its
     pixels are observed in smaller blocks or one by one. The cost of the observation pass then
     grows with the voxels seen more than with the pixels: 1.0 (blocks of up to a voxel) is
-    2.1x faster than 0.5 on real 1 cm frames, and where a voxel spans under 2 pixels (the
+    1.9x faster than 0.5 on real 1 cm frames, and where a voxel spans under 2 pixels (the
     development suite) it changes nothing. Measured in docs/measurements.md."""
 
     misfit_frames: int = 100
