@@ -197,8 +197,10 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     boundary = (rel % c == 0) & (rel > 0)
     n_chunks = (n_cells + c - 1) // c     # chunks per axis that hold cells
     rows, chunk_idx = [], []
+    bits = boundary @ np.array([4, 2, 1])  # which axes a voxel sits on a chunk boundary of
     for shift in _CORNERS:                # 8 combinations of "also in the previous chunk" per axis
-        sel = np.all(boundary | (shift == 0), axis=1)
+        need = int(shift @ np.array([4, 2, 1]))
+        sel = (bits & need) == need       # on a boundary along every axis the shift moves
         qs = q[sel] - shift
         keep = np.all(qs < n_chunks, axis=1)   # the last voxel layer may open an empty chunk
         rows.append(np.flatnonzero(sel)[keep])
@@ -211,6 +213,7 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     starts = np.flatnonzero(np.r_[True, chunk_key[1:] != chunk_key[:-1]])
     ends = np.r_[starts[1:], len(chunk_key)]
 
+    level32 = np.float32(level)
     key_parts, pos_parts, face_parts = [], [], []
     n_vertices = 0
     n_centre = 0
@@ -225,15 +228,11 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
 
         # A cell (named by its lowest corner) is meshed if its 8 corners are observed and the
         # level crosses it (skimage's corner test is `value - level > 0`).
-        above = vol.astype(np.float64) > level     # in float64, as skimage compares
-        all_obs = np.ones(shape - 1, dtype=bool)
-        any_above = np.zeros(shape - 1, dtype=bool)
-        all_above = np.ones(shape - 1, dtype=bool)
-        for a, b, d in _CORNERS:
-            sl = (slice(a, a + shape[0] - 1), slice(b, b + shape[1] - 1), slice(d, d + shape[2] - 1))
-            all_obs &= obs[sl]
-            any_above |= above[sl]
-            all_above &= above[sl]
+        # in float64, as skimage compares; the same in float32 when level is a float32 value
+        above = vol > level32 if level32 == level else vol.astype(np.float64) > level
+        all_obs = _cell_reduce(obs, np.logical_and)
+        any_above = _cell_reduce(above, np.logical_or)
+        all_above = _cell_reduce(above, np.logical_and)
         active = all_obs & any_above & ~all_above
         if not active.any():
             continue
@@ -279,6 +278,14 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     if return_edges:
         out += (VertexEdges.from_keys(keys[first][used], pos[used], lo, key_dims, grid_keys_end),)
     return out
+
+
+def _cell_reduce(a: np.ndarray, op) -> np.ndarray:
+    """``op`` (logical and / or) of the 8 corners of every cell of the voxel array ``a``: (X-1,
+    Y-1, Z-1), cell (x, y, z) over voxels x..x+1, y..y+1, z..z+1, one axis at a time."""
+    a = op(a[:-1], a[1:])
+    a = op(a[:, :-1], a[:, 1:])
+    return op(a[:, :, :-1], a[:, :, 1:])
 
 
 @dataclass
