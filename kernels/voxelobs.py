@@ -323,6 +323,7 @@ def _block_means(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=
         k = ti.static(1 << lv)
         for by, bx in ti.ndrange(dl.shape[0], dl.shape[1]):  # (1, 1) above ``levels``
             if lv <= levels:
+                # the range test alone, as this model's figures were measured (no plane test)
                 dl[by, bx] = block_mean_depth(depth, by, bx, k, reach, 0.0, 0.0, 0.0, False)
 
 
