@@ -276,8 +276,12 @@ def surface_sdf(mesh, points: np.ndarray, spacing_m: float, seed: int = 0,
 
     # Open boundary: edges used by one face only (the mesh's own vertex indexing; a mesh with
     # duplicated vertices at seams shows spurious boundaries there, which only drops points).
-    edges = np.sort(np.asarray(mesh.edges), axis=1)
-    uniq, count = np.unique(edges, axis=0, return_counts=True)
+    edges = np.sort(np.asarray(mesh.edges, np.int64), axis=1)
+    n_v = max(len(mesh.vertices), 1)
+    # one int64 key per edge (ascending keys = lexicographic edges): np.unique's result,
+    # without its row sort
+    keys, count = np.unique(edges[:, 0] * n_v + edges[:, 1], return_counts=True)
+    uniq = np.stack([keys // n_v, keys % n_v], axis=1)
     boundary = uniq[count == 1]
     if len(boundary):
         verts = np.asarray(mesh.vertices)
