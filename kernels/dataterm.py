@@ -13,8 +13,8 @@ element from one thread.
 
 import taichi as ti
 
-from .funcs import (block_mean_depth, block_row, block_rows, cell_corners, corner, floor_i32,
-                    trilinear)
+from .funcs import (block_is_planar, block_mean_depth, block_row, block_rows, cell_corners,
+                    corner, floor_i32, trilinear)
 from .layout import BLOCK, CENTRE
 from .lookup import band_index
 from .stencil import first_chunk, virtual_iterations
@@ -447,10 +447,9 @@ def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2
                 prm: _NDA(dtype=ti.f64, ndim=1), levels: ti.i32):
     """A frame's super-pixel pyramid in one launch (``prm``: its full-resolution parameters).
 
-    Levels l = 1..``levels`` (``d1..d4``, blocks of ``k = 2^l`` pixels a side, the image
-    size divided by k and rounded down; the levels above ``levels`` are not used): the mean
-    depth of each k x k block whose pixels are valid and one plane within the frame's axial
-    noise (:func:`kernels.funcs.block_mean_depth`), else 0.
+    Levels l = 1..``levels`` (``d1..d4``, blocks of ``k = 2^l`` pixels a side, the image size
+    divided by k and rounded down; those above ``levels`` unused): the mean depth of each k x k
+    block of valid pixels on one plane (:func:`kernels.funcs.block_is_planar`), else 0.
 
     Masks ``m0..m4`` (level 0 is the frame): 1 where the level observes the pixel (it is valid
     and spans at most ``prm[P_AGGREGATE]`` voxel footprints, ``k <= aggregate * f * voxel /
@@ -464,8 +463,11 @@ def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2
         k = ti.static(1 << lv)
         for by, bx in ti.ndrange(dl.shape[0], dl.shape[1]):
             if lv <= levels:
-                dl[by, bx] = block_mean_depth(depth, by, bx, k, reach, prm[P_A], prm[P_B],
-                                              prm[P_Z0], True)
+                mean = block_mean_depth(depth, by, bx, k, reach)
+                if mean > 0:
+                    if not block_is_planar(depth, by, bx, k, mean, prm[P_A], prm[P_B], prm[P_Z0]):
+                        mean = ti.f32(0.0)
+                dl[by, bx] = mean
     for lv in ti.static(range(5)):
         ml = ti.static((m0, m1, m2, m3, m4)[lv])
         dl = ti.static((depth, d1, d2, d3, d4)[lv])
@@ -522,11 +524,10 @@ def estimate_normals(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
 
 @ti.func
 def part_sum(acc: ti.template(), i: ti.i32, c: ti.i32) -> ti.i64:
-    """Entry ``(i, c)`` summed over the accumulator's parts (integers: exact). The loop is
-    unrolled over at most :data:`MAX_PARTS` parts: LLVM vectorised a run-time loop here into
-    ~13k lines of IR, which even a warm run turned into code on the first call
-    (:func:`finalize_stencil`'s first call 0.47 -> 0.12 s warm, 0.84 -> 0.22 s cold;
-    ``python tools/bench_startup.py --kernels 25``)."""
+    """Entry ``(i, c)`` summed over the accumulator's parts (integers: exact), unrolled over
+    at most :data:`MAX_PARTS`: LLVM vectorised a run-time loop here into ~13k lines of IR, code
+    even a warm run generates on the first call (:func:`finalize_stencil`'s first call 0.47 ->
+    0.12 s warm, 0.84 -> 0.22 s cold; ``python tools/bench_startup.py --kernels 25``)."""
     total = ti.i64(0)
     for p in ti.static(range(MAX_PARTS)):
         if p < acc.shape[0]:

@@ -7,7 +7,8 @@
 * :func:`block_rows`, :func:`cell_corners` -- band indices of the 8 corners of a trilinear cell;
 * :func:`corner`, :func:`trilinear` -- the cell corners ``c = 4 ci + 2 cj + ck`` and their
   trilinear weights;
-* :func:`block_mean_depth` -- the mean depth of a k x k block of pixels on one planar surface.
+* :func:`block_mean_depth`, :func:`block_is_planar` -- the mean depth of a k x k block of pixels
+  on one surface, and whether the block is one plane within the sensor noise.
 
 All of them are pure reads: deterministic in any kernel.
 """
@@ -102,35 +103,12 @@ def trilinear(f):
                       * w[2, ti.static(corner(c)[2])] for c in ti.static(range(8))], dt=ti.f64)
 
 
-#: A k x k block is one planar surface when its pixels' RMS deviation from their least-squares
-#: plane is at most PLANE_NOISE times the axial depth noise at its mean depth
-#: (:func:`block_mean_depth`): pure noise passes (its RMS is about the noise), a step, a crease
-#: or a curve that bends by more than the noise within the block does not.
-PLANE_NOISE = 2.0
-
-
 @ti.func
 def block_mean_depth(depth: ti.template(), by: ti.i32, bx: ti.i32, k: ti.template(),
-                     reach: ti.f32, noise_a: ti.f64, noise_b: ti.f64, noise_z0: ti.f64,
-                     planar: ti.template()) -> ti.f32:
+                     reach: ti.f32) -> ti.f32:
     """Mean depth of pixels ``[by k, by k + k) x [bx k, bx k + k)`` of ``depth`` if all are
-    valid (> 0) and lie on one surface, else 0. One surface: the depths differ by at most ``k
-    reach mean`` (``reach = tan(max slope) / fx``, a surface inclined by at most that slope)
-    and, with ``planar``, the block is one plane within the sensor noise: the RMS of the depths'
-    residuals from their least-squares plane, ``d ~ c + g_u du + g_v dv``, is at most
-    ``PLANE_NOISE (noise_a + noise_b (mean - noise_z0)^2)``, the axial noise at the mean depth
-    (metres). On a plane the block's mean is the surface at its centre; where the block
-    straddles a step or a crease, or a curve bends within it, the mean lies on no surface.
-    The plane is fitted over the block's own pixels for k >= 4, and over the 4 x 4 pixels of a
-    2 x 2 block and its ring for k = 2: four pixels leave the plane one degree of freedom, and
-    a step between a block's two columns is a plane (a ring pixel without depth or outside the
-    image refuses the block: it borders an edge).
-
-    The plane's residual sum of squares over an ``r x r`` window is ``sum e^2 - (sum e)^2 / r^2
-    - (S_u^2 + S_v^2) / S_uu`` (the pixel offsets from the window's centre are orthogonal to
-    each other and to the constant on the square grid), ``e`` the depths less the block's mean
-    (float64, so the sum does not cancel), ``S_u = sum e (du - (r - 1) / 2)``, ``S_uu = r^2 (r^2
-    - 1) / 12``."""
+    valid (> 0) and lie on one surface (they differ by at most ``k reach mean``; ``reach =
+    tan(max slope) / fx``, a surface inclined by at most that slope), else 0."""
     lo, hi, total = ti.f32(1e30), ti.f32(0.0), ti.f32(0.0)
     for dv in range(k):
         for du in range(k):
@@ -140,29 +118,56 @@ def block_mean_depth(depth: ti.template(), by: ti.i32, bx: ti.i32, k: ti.templat
     out = ti.f32(0.0)
     if lo > 0 and hi - lo <= reach * ti.static(float(k)) * mean:
         out = mean
-        if ti.static(planar):
-            # the plane is fitted over the block and, for k = 2 (whose 4 pixels leave one
-            # degree of freedom: a step between its columns is a plane), its ring of pixels
-            g = ti.static(1 if k == 2 else 0)
-            r = ti.static(k + 2 * g)
-            d_ref = ti.cast(mean, ti.f64)
-            s1, s2, su, sv = ti.f64(0.0), ti.f64(0.0), ti.f64(0.0), ti.f64(0.0)
-            for dv in range(r):
-                for du in range(r):
-                    vv, uu = by * k + dv - g, bx * k + du - g
-                    d = ti.f32(0.0)
-                    if 0 <= vv < depth.shape[0] and 0 <= uu < depth.shape[1]:
-                        d = depth[vv, uu]
-                    if d <= 0:
-                        out = ti.f32(0.0)  # a ring pixel without depth: an edge
-                    e = ti.cast(d, ti.f64) - d_ref
-                    s1 += e
-                    s2 += e * e
-                    su += e * (ti.cast(du, ti.f64) - ti.static((r - 1) / 2.0))
-                    sv += e * (ti.cast(dv, ti.f64) - ti.static((r - 1) / 2.0))
-            n = ti.static(float(r * r))
-            rss = s2 - s1 * s1 / n - (su * su + sv * sv) / ti.static(r * r * (r * r - 1) / 12.0)
-            sd = noise_a + noise_b * (d_ref - noise_z0) ** 2
-            if rss > n * (PLANE_NOISE * sd) ** 2:
-                out = ti.f32(0.0)
     return out
+
+
+#: A k x k block is one planar surface when its pixels' RMS deviation from their least-squares
+#: plane is at most PLANE_NOISE times the axial depth noise at its mean depth
+#: (:func:`block_is_planar`): pure noise passes (its RMS is about the noise), a step, a crease
+#: or a curve that bends by more than the noise within the block does not.
+PLANE_NOISE = 2.0
+
+
+@ti.func
+def block_is_planar(depth: ti.template(), by: ti.i32, bx: ti.i32, k: ti.template(),
+                    mean: ti.f32, noise_a: ti.f64, noise_b: ti.f64, noise_z0: ti.f64) -> ti.i32:
+    """1 if the k x k block ``[by k, by k + k) x [bx k, bx k + k)`` of ``depth``, whose mean
+    depth is ``mean`` (:func:`block_mean_depth`), is one plane within the sensor noise: the
+    RMS of the depths' residuals from their least-squares plane, ``d ~ c + g_u du + g_v dv``,
+    is at most ``PLANE_NOISE (noise_a + noise_b (mean - noise_z0)^2)``, the axial noise at the
+    mean depth (metres). On a plane the block's mean is the surface at its centre; where the
+    block straddles a step or a crease, or a curve bends within it, the mean lies on no
+    surface. The plane is fitted over the block's own pixels for k >= 4, and over the 4 x 4
+    pixels of a 2 x 2 block and its ring for k = 2: four pixels leave the plane one degree of
+    freedom, and a step between a block's two columns is a plane (a ring pixel without depth
+    or outside the image refuses the block: it borders an edge).
+
+    The plane's residual sum of squares over an ``r x r`` window is ``sum e^2 - (sum e)^2 / r^2
+    - (S_u^2 + S_v^2) / S_uu`` (the pixel offsets from the window's centre are orthogonal to
+    each other and to the constant on the square grid), ``e`` the depths less the block's mean
+    (float64, so the sum does not cancel), ``S_u = sum e (du - (r - 1) / 2)``, ``S_uu = r^2 (r^2
+    - 1) / 12``."""
+    g = ti.static(1 if k == 2 else 0)  # the ring of a 2 x 2 block
+    r = ti.static(k + 2 * g)
+    d_ref = ti.cast(mean, ti.f64)
+    s1, s2, su, sv = ti.f64(0.0), ti.f64(0.0), ti.f64(0.0), ti.f64(0.0)
+    ok = 1
+    for dv in range(r):
+        for du in range(r):
+            vv, uu = by * k + dv - g, bx * k + du - g
+            d = ti.f32(0.0)
+            if 0 <= vv < depth.shape[0] and 0 <= uu < depth.shape[1]:
+                d = depth[vv, uu]
+            if d <= 0:
+                ok = 0  # a ring pixel without depth: an edge
+            e = ti.cast(d, ti.f64) - d_ref
+            s1 += e
+            s2 += e * e
+            su += e * (ti.cast(du, ti.f64) - ti.static((r - 1) / 2.0))
+            sv += e * (ti.cast(dv, ti.f64) - ti.static((r - 1) / 2.0))
+    n = ti.static(float(r * r))
+    rss = s2 - s1 * s1 / n - (su * su + sv * sv) / ti.static(r * r * (r * r - 1) / 12.0)
+    sd = noise_a + noise_b * (d_ref - noise_z0) ** 2
+    if rss > n * (PLANE_NOISE * sd) ** 2:
+        ok = 0
+    return ok

@@ -59,7 +59,7 @@ Super-pixels (``aggregate`` > 0, at stride 1): where a voxel spans many pixels, 
 of pixels (``k = 2^l``, l = 1..MAX_LEVEL) whose depths are all valid and lie on one planar
 surface (they differ by at most ``k tan(normal_max_slope) D / fx`` and deviate from their
 least-squares plane by at most PLANE_NOISE = 2 times the axial noise at D, RMS, a 2 x 2 block's
-plane fitted with its ring of pixels: :func:`kernels.funcs.block_mean_depth`; on a plane the
+plane fitted with its ring of pixels: :func:`kernels.funcs.block_is_planar`; on a plane the
 block's mean depth is the surface at its centre, across a step, a crease or a bend it lies on
 no surface) is observed as one pixel of the block
 image (intrinsics ``fx / k``, ``(cx - (k - 1) / 2) / k``) at the block's mean depth: its

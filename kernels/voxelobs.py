@@ -324,7 +324,7 @@ def _block_means(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=
         for by, bx in ti.ndrange(dl.shape[0], dl.shape[1]):  # (1, 1) above ``levels``
             if lv <= levels:
                 # the range test alone, as this model's figures were measured (no plane test)
-                dl[by, bx] = block_mean_depth(depth, by, bx, k, reach, 0.0, 0.0, 0.0, False)
+                dl[by, bx] = block_mean_depth(depth, by, bx, k, reach)
 
 
 #: Pixels a side of the tiles whose depth range culls whole blocks (:func:`_voxel_frame`).
