@@ -11,7 +11,7 @@ import numpy as np
 from .observe import (FramePicks, estimate_extra_noise, free_space_rows, local_misfit,
                       make_observer, observe)
 from .prior import add_prior
-from .solve import solve_map
+from .solve import prior_bias, solve_map
 from .variance import estimate_variance
 
 __all__ = ["Lap", "fit_noise", "solve_band"]
@@ -53,7 +53,8 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
         carved[todo] = (n_carved >= 2) & (n_carved >= cfg.prior.carve * free_space.observing())
     observer.release()  # the misfit pass below needs only its lookups
     data = None
-    if variance and cfg.solver.variance != "posterior":  # the data term's share (step 6)
+    bias_on = variance and cfg.solver.prior_bias and not cfg.prior.curvature_scale > 0
+    if variance and (cfg.solver.variance != "posterior" or bias_on):  # the data's share
         from kernels.layout import CENTRE
 
         W = (S.sum(axis=1, dtype=np.float64).astype(np.float32)
@@ -66,8 +67,12 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
                                 voxel_size_m=vs, free=cfg.prior.free,
                                 prior=cfg.prior, carved=carved)
     lap("map")
+    bias = None
+    if bias_on:  # the MAP's bias under its prior, estimated at the mean (step 6)
+        bias = prior_bias(system, band, cfg.prior, cfg.band.stencil, vs, mean, cfg.solver)
+        lap("bias")
     var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
-                                            probes=variance, data=data)
+                                            probes=variance, data=data, bias=bias)
     lap("variance")
     if o.local_noise:  # the model error b^2 (fully correlated between neighbours) added
         picked = FramePicks(frames, o.misfit_frames)

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..checks import check_choice, check_range
 
-__all__ = ["PriorConfig", "System", "add_prior"]
+__all__ = ["PriorConfig", "System", "add_prior", "prior_terms"]
 
 
 @dataclass
@@ -98,6 +98,17 @@ def add_prior(S: np.ndarray, h_data: np.ndarray, band, prior: PriorConfig, stenc
               voxel_size_m: float) -> System:
     """Add the prior of ``prior`` (stencil 6/18/26) to the data term ``S`` (in place) and
     ``h_data``; return the :class:`System`. ``band``: the :class:`~.band.Band`."""
+    b0, far = prior_terms(S, band, prior, stencil, voxel_size_m)
+    h = (h_data.astype(np.float64) + b0).astype(np.float32)
+    return System(S=S, nbr=band.nbr, h=h, far=far)
+
+
+def prior_terms(S: np.ndarray, band, prior: PriorConfig, stencil: int,
+                voxel_size_m: float) -> tuple:
+    """Add the prior's precision to ``S`` (N, 27), in place; return ``(b0, far)``: its part of
+    the right-hand side (the anchors' pull to the TSDF), (N,) float32, and its entries at
+    offsets +-2 (the curvature prior; None without it). On ``S = 0`` this is the prior alone
+    (:func:`~.solve.prior_bias`)."""
     from kernels.prior import add_curvature_prior
     from kernels.prior import add_prior as add_membrane
 
@@ -109,5 +120,4 @@ def add_prior(S: np.ndarray, h_data: np.ndarray, band, prior: PriorConfig, stenc
     far = None
     if prior.curvature > 0:
         far = add_curvature_prior(S, band.nbr, lam2=prior.curvature / scale)
-    h = (h_data.astype(np.float64) + b0).astype(np.float32)
-    return System(S=S, nbr=band.nbr, h=h, far=far)
+    return b0, far

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..checks import MAX_SEED, check_choice, check_range
 
-__all__ = ["SolverConfig", "solve_map"]
+__all__ = ["SolverConfig", "prior_bias", "solve_map"]
 
 
 @dataclass
@@ -50,6 +50,18 @@ class SolverConfig:
     sandwich alone is too narrow where the prior extrapolates; ``Q^-1`` alone too wide where
     the data pin a voxel down and the prior's modes are ones a smooth surface does not
     have."""
+
+    prior_bias: bool = True
+    """Add the MAP's bias under its own prior to the variance (DESIGN.md 3.6;
+    docs/measurements.md). The prior pulls the mean where the surface bends: at the MAP the
+    prior's force ``P mu - b0`` balances the data's, and the mean sits ``b = -Q^-1 (P mu -
+    b0)`` from where the data alone would put it (the bias ``-Q^-1 (P x - b0)`` of the MAP,
+    the truth ``x`` estimated by the mean). One more solve, to ``probe_tol``. The variance
+    then holds the squared bias beyond what the mean's own noise puts into the estimate
+    (:func:`~.variance.estimate_variance`), fully correlated between neighbours as a
+    deterministic offset: creases, thin parts and the prior's extrapolation get the larger
+    sigma their errors have. Not with the robust curvature prior (``prior.curvature_scale >
+    0``), whose reweighted stencil this estimate does not rebuild."""
 
     def check(self) -> None:
         check_range("solver.tol", self.tol, 0.0, 1.0, lo_open=True)
@@ -145,3 +157,38 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         stats["reason"] = info["reason"]
     stats["residual_history"] = [float(r) for r in info.get("residual_history", [])]
     return np.asarray(mean, np.float32), stats
+
+
+def prior_bias(system, band, prior, stencil: int, voxel_size_m: float, mean: np.ndarray,
+               solver: SolverConfig) -> tuple[np.ndarray, dict]:
+    """The MAP's bias under its prior, estimated at the mean: ``b = -Q^-1 (P mu - b0)``, (N,)
+    float64 metres, and ``stats`` (iterations, converged, median and 90th percentile of
+    ``|b|`` in metres).
+
+    With ``Q = D + P`` (data and prior precision) and ``h = A^T W y + b0``, the MAP of data
+    ``y = A x + e`` has the mean ``E[mu] = x - Q^-1 (P x - b0)``: the prior pulls it by the
+    force it exerts on the truth. At the MAP that force equals the data's residual force
+    ``A^T W (y - A mu)``. ``P mu - b0`` is computed from the prior alone
+    (:func:`~.prior.prior_terms` on an empty stencil), so the data term need not be kept;
+    ``system`` is the posterior's (without the free-space anchors, which enforce an
+    inequality and are no prior). The solve stops at ``solver.probe_tol``: the bias enters a
+    variance, like the probes."""
+    from kernels.compact import CompactStencil
+    from kernels.pcg import pcg
+    from kernels.stencil import apply_Q
+
+    from .prior import prior_terms
+
+    P = np.zeros_like(system.S)
+    b0, far = prior_terms(P, band, prior, stencil, voxel_size_m)
+    force = apply_Q(P, band.nbr, mean.astype(np.float64), far=far) - b0
+    del P, far
+    compact = CompactStencil(system.S, system.nbr, system.far, check=False)
+    b, info = pcg(system.S, system.nbr, force, None, tol=solver.probe_tol,
+                  maxiter=solver.maxiter, far=system.far, compact=compact)
+    b = -b
+    a = np.abs(b)
+    stats = {"iterations": int(info["iterations"]), "converged": bool(info["converged"]),
+             "median_m": float(np.median(a)) if len(a) else 0.0,
+             "p90_m": float(np.quantile(a, 0.9)) if len(a) else 0.0}
+    return b, stats

@@ -13,7 +13,8 @@ __all__ = ["estimate_variance"]
 
 
 def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
-                      data: tuple | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+                      data: tuple | None = None,
+                      bias: tuple | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """``(var, cov, stats)`` of ``system`` (:class:`~.prior.System`) by ``solver.probes``
     probes of ``solver.probe_method`` (``ijk`` (N, 3): the band's voxels, which lattice
     colouring needs).
@@ -48,7 +49,17 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
 
     ``B`` is floored as above before the blend, ``B - S`` (the prior's part, >= 0 in exact
     arithmetic) at 0; the blend is not floored at ``1/Q_ii``, which bounds the Bayesian
-    variance, not the sandwich. The covariances are clipped to the blended variances' bound.
+    variance, not the sandwich.
+
+    ``bias = (b, stats)`` (:func:`~.solve.prior_bias`, ``solver.prior_bias``; needs
+    ``data``): the MAP's bias under its prior, estimated at the mean, is added as a
+    deterministic offset: ``var += e^2``, ``cov_ij += e_i e_j``. The estimate carries the
+    noise of the mean it is computed from, ``b = Q^-1 P mu`` moving by ``Q^-1 P`` times the
+    mean's noise; for independent voxels that is ``(1 - rho)`` times it, variance ``(1 -
+    rho)^2 rho B_ii`` (the blend's approximation of the sandwich, ``rho B_ii``). Only the
+    excess counts: ``e^2 = max(b^2 - (1 - rho)^2 rho B_ii, 0)``, ``e`` with the sign of ``b``.
+
+    The covariances are clipped to the final variances' bound.
     """
     from kernels.layout import CENTRE
     from kernels.probes import probe_moments
@@ -63,10 +74,15 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
                                     far=system.far, check=False)  # add_prior's: symmetric
     stats = dict(stats, n_floored=int(np.count_nonzero(var < floor)))
     var = np.maximum(var, floor)
+    var_b = var
     if solver.variance == "blend" and data is not None:
         var, cov, stats = _blend(system, var, cov, stats, data[1])
     elif solver.variance == "blend-sampled" and data is not None:
         var, cov, stats = _blend_sampled(system, solver, var, cov, stats, *data)
+    if bias is not None:
+        if data is None:
+            raise ValueError("the prior bias needs data = (W, D_ii): the data's share")
+        var, cov, stats = _add_bias(system, var_b, var, cov, stats, bias, data[1])
     nbr_var = _face_neighbours(system.nbr, var)
     bound = np.sqrt(var[:, None].astype(np.float64) * nbr_var).astype(np.float32)
     stats["n_cov_clipped"] = int(np.count_nonzero(np.abs(cov) > bound))
@@ -122,3 +138,17 @@ def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii):
                                    relative_residuals=sand["relative_residuals"]),
                  mean_data_share=float(rho.mean()) if len(rho) else 0.0)
     return var.astype(np.float32), cov.astype(np.float32), stats
+
+
+def _add_bias(system, var_b, var, cov, stats, bias, D_ii):
+    """``var + e^2`` and ``cov_ij + e_i e_j``, ``e`` the prior's bias beyond the noise of its
+    estimate (:func:`estimate_variance`)."""
+    b, b_stats = bias
+    rho = _data_share(system, D_ii)
+    noise = (1.0 - rho) ** 2 * rho * var_b.astype(np.float64)
+    e = np.sign(b) * np.sqrt(np.maximum(b * b - noise, 0.0))
+    var = (var.astype(np.float64) + e * e).astype(np.float32)
+    cov = (cov.astype(np.float64) + e[:, None] * _face_neighbours(system.nbr, e)).astype(
+        np.float32)
+    stats = dict(stats, prior_bias=dict(b_stats, voxels=int(np.count_nonzero(e))))
+    return var, cov, stats
