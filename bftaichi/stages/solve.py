@@ -53,10 +53,10 @@ class SolverConfig:
 
     prior_bias: bool = True
     """Add the MAP's bias under its own prior to the variance (DESIGN.md 3.6;
-    docs/measurements.md). The prior pulls the mean where the surface bends: at the MAP the
-    prior's force ``P mu - b0`` balances the data's, and the mean sits ``b = -Q^-1 (P mu -
-    b0)`` from where the data alone would put it (the bias ``-Q^-1 (P x - b0)`` of the MAP,
-    the truth ``x`` estimated by the mean). One more solve, to ``probe_tol``. The variance
+    docs/measurements.md). The prior pulls the mean where the surface bends: the MAP of a
+    truth ``x`` sits ``-Q^-1 (P x - b0)`` from it on average, and ``b = -Q^-1 (P mu - b0)``
+    estimates that with the mean in place of the truth (at the MAP the prior's force ``P mu
+    - b0`` balances the data's). One more solve, to ``probe_tol``. The variance
     then holds the squared bias beyond what the mean's own noise puts into the estimate
     (:func:`~.variance.estimate_variance`), fully correlated between neighbours as a
     deterministic offset: creases, thin parts and the prior's extrapolation get the larger
