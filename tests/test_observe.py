@@ -477,7 +477,7 @@ def test_superpixels_keep_every_pixel_and_the_geometry():
 
 def test_superpixels_are_planar_blocks():
     """A block of pixels is observed as one super-pixel only where it is one plane within the
-    sensor noise (kernels.funcs.block_mean_depth): on a tilted plane with the axial noise the
+    sensor noise (kernels.funcs.block_is_planar): on a tilted plane with the axial noise the
     4 x 4 blocks form, and the blocks straddling a 3 cm step (well within the range test's
     slope limit) are observed in smaller blocks, so no block's mean depth lies between the two
     surfaces (also not a 2 x 2 block's, which is tested with its ring of pixels); every valid

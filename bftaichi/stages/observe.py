@@ -112,7 +112,7 @@ class ObservationConfig:
     aggregate: float = 1.0
     """Super-pixels where a voxel spans many pixels (no unit; 0 = off): a k x k block of pixels
     that lie on one planar surface (within twice the sensor's noise,
-    :func:`kernels.funcs.block_mean_depth`) is observed as one pixel at its mean depth carrying
+    :func:`kernels.funcs.block_is_planar`) is observed as one pixel at its mean depth carrying
     the information of all k^2 (``k`` a power of two up to 16, at most ``aggregate`` voxel
     footprints ``f voxel / depth`` pixels a side). Every valid pixel still counts, once; on a
     plane the block's mean is the surface at its centre, and where a block is not planar its
