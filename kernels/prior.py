@@ -205,6 +205,16 @@ def reweight_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: floa
     _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
 
 
+def weight_curvature_prior(S, far, nbr, W, *, lam2: float) -> None:
+    """Give the curvature prior that :func:`add_curvature_prior` put into ``S`` and ``far``
+    (all weights one, strength ``lam2``) the weights ``W`` (N, 3) float32 of its second
+    differences (those :func:`reweight_curvature_prior` left in a system), in place: the same
+    update as one reweighting step from all-one weights."""
+    S2, nbr2 = far
+    dW = np.ascontiguousarray(W, np.float32) - np.float32(1.0)
+    _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
+
+
 def _shape_of(arr, name: str) -> tuple:
     if not hasattr(arr, "shape"):
         raise ValueError(f"prior argument {name} must be a numpy array or Taichi ndarray, "

@@ -20,7 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from kernels.band import build_band
 from kernels.stencil import apply_Q, check_far, check_stencil
 from kernels.prior import (ANCHOR_MODES, add_curvature_prior, add_prior,
-                           reweight_curvature_prior)
+                           reweight_curvature_prior, weight_curvature_prior)
 
 VOXEL = 0.01
 TAU_B = 0.02
@@ -280,6 +280,29 @@ def test_robust_curvature_prior_reweights_to_the_reference_at_the_last_field(ban
     check_far(far, S + np.eye(1, 27, 13, dtype=np.float32), rtol=0)
     at_crease = np.abs(ijk[:, 0] + 0.5) < 1
     assert W[at_crease, 0].max() < 0.1 and W[~at_crease].max() > 0.99
+
+
+def test_weighted_curvature_prior_is_the_one_the_reweighting_left(band):
+    """``weight_curvature_prior`` gives a fresh curvature prior the weights a system was left
+    with after reweighting (what ``solver.prior_bias`` rebuilds the prior from): the same Q as
+    the reference ``lam2 D^T diag(w) D``, and not the all-one prior."""
+    nbr, ijk, c = band["nbr"], band["ijk"], 0.3 * VOXEL
+    n = len(ijk)
+    crease = (np.abs((ijk[:, 0] + 0.5) * VOXEL) + 0.5 * (ijk[:, 2] + 0.5) * VOXEL
+              ).astype(np.float32)
+    S = np.zeros((n, 27), np.float32)
+    far = add_curvature_prior(S, nbr, lam2=LAM)
+    W = np.ones((n, 3), np.float32)
+    reweight_curvature_prior(S, far, nbr, crease, W, lam2=LAM, scale_m=c)
+    fresh = np.zeros((n, 27), np.float32)
+    far_fresh = add_curvature_prior(fresh, nbr, lam2=LAM)
+    unit = curvature_csr(fresh, nbr, *far_fresh)
+    weight_curvature_prior(fresh, far_fresh, nbr, W, lam2=LAM)
+    Q, Q_fresh = curvature_csr(S, nbr, *far), curvature_csr(fresh, nbr, *far_fresh)
+    Q_ref = reference_curvature(ijk, LAM, crease.astype(np.float64), c)
+    assert abs(Q_fresh - Q_ref).max() <= 1e-5 * LAM
+    assert abs(Q_fresh - Q).max() <= 1e-5 * LAM
+    assert abs(unit - Q_ref).max() > 0.5 * LAM  # the weights matter at the crease
 
 
 @pytest.mark.parametrize("bad", ["lam2", "shape", "dtype"])

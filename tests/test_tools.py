@@ -172,6 +172,8 @@ def test_suite_diff_shows_what_moved_and_the_targets_of_both(tmp_path):
     listed = [ln for ln in out.splitlines() if ln.startswith("| ") and "/" in ln.split("|")[1]]
     assert len(listed) == 1 and listed[0].startswith("| suzanne/few_views |")
     assert "70 / 95 / 99.0 -> 82 / 95 / 99.0" in listed[0] and "| - -> cov1 |" in listed[0]
+    assert ("over the 2 cases of both: mean NLL - const -0.500 -> -0.500; AUSE new / old "
+            "1.000" in out)
     same = _run([TOOLS / "suite_diff.py", tmp_path / "old.json", tmp_path / "old.json"])
     assert "no case moved" in same
 

@@ -2,7 +2,10 @@
 """Two runs of the development suite side by side: what a model change moved, case by case.
 
 Reads two ``--json`` files of ``tools/suite.py`` (the rows of the same cases; a case only one
-run has is listed as such) and prints the summary line of each, then one row per case whose
+run has is listed as such) and prints the summary line of each; then, over the cases both runs
+have, the scores the target counts hide: the mean NLL minus the best constant's (a proper
+score: calibration and sharpness in one number; lower is better), the geometric mean of the
+AUSE ratio new / old and the mean Spearman; then one row per case whose
 missed targets or any of whose figures, rounded as printed, changed: the CD ratio, the
 coverage at 1 / 2 / 3 sigma, the NLL minus the best constant's, AUSE and Spearman, each as
 old -> new, and the missed targets of both::
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -71,6 +75,20 @@ def compare(old: dict, new: dict, every: bool = False) -> list[str]:
     return lines
 
 
+def scores(old: dict, new: dict) -> str:
+    """Mean NLL minus the constant's (old -> new), geometric mean AUSE ratio (new / old) and
+    mean Spearman (old -> new) over the cases both runs have."""
+    both = [n for n in old if n in new]
+    if not both:
+        return "no case in both runs"
+    mean = lambda rows, key: sum(rows[n][key] for n in both) / len(both)  # noqa: E731
+    ause = math.exp(sum(math.log(new[n]["ause"] / old[n]["ause"]) for n in both) / len(both))
+    return (f"over the {len(both)} cases of both: mean NLL - const "
+            f"{mean(old, 'nll_vs_constant'):+.3f} -> {mean(new, 'nll_vs_constant'):+.3f}; "
+            f"AUSE new / old {ause:.3f} (geometric mean); mean Spearman "
+            f"{mean(old, 'spearman'):.3f} -> {mean(new, 'spearman'):.3f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -82,6 +100,7 @@ def main(argv=None) -> int:
     new, sets_new = _load(args.new)
     print(f"before ({' '.join(sets_old) or 'no overrides'}): {summary(old)}")
     print(f"after ({' '.join(sets_new) or 'no overrides'}): {summary(new)}")
+    print(scores(old, new))
     print()
     lines = compare(old, new, args.all)
     print("\n".join(lines) if len(lines) > 2 else "no case moved")

@@ -53,7 +53,7 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
         carved[todo] = (n_carved >= 2) & (n_carved >= cfg.prior.carve * free_space.observing())
     observer.release()  # the misfit pass below needs only its lookups
     data = None
-    bias_on = variance and cfg.solver.prior_bias and not cfg.prior.curvature_scale > 0
+    bias_on = variance and cfg.solver.prior_bias
     if variance and (cfg.solver.variance != "posterior" or bias_on):  # the data's share
         from kernels.layout import CENTRE
 

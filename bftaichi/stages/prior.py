@@ -92,6 +92,10 @@ class System:
     nbr: np.ndarray
     h: np.ndarray
     far: tuple | None = None
+    curvature_weights: np.ndarray | None = None
+    """(N, 3) float32 weights of the robust curvature prior's second differences that ``S`` and
+    ``far`` hold (``prior.curvature_scale > 0``; set by :func:`~.solve.solve_map`), None: all
+    one."""
 
 
 def add_prior(S: np.ndarray, h_data: np.ndarray, band, prior: PriorConfig, stencil: int,
@@ -104,12 +108,13 @@ def add_prior(S: np.ndarray, h_data: np.ndarray, band, prior: PriorConfig, stenc
 
 
 def prior_terms(S: np.ndarray, band, prior: PriorConfig, stencil: int,
-                voxel_size_m: float) -> tuple:
+                voxel_size_m: float, curvature_weights: np.ndarray | None = None) -> tuple:
     """Add the prior's precision to ``S`` (N, 27), in place; return ``(b0, far)``: its part of
     the right-hand side (the anchors' pull to the TSDF), (N,) float32, and its entries at
-    offsets +-2 (the curvature prior; None without it). On ``S = 0`` this is the prior alone
-    (:func:`~.solve.prior_bias`)."""
-    from kernels.prior import add_curvature_prior
+    offsets +-2 (the curvature prior; None without it). ``curvature_weights``: the robust
+    curvature prior's weights (:attr:`System.curvature_weights`; None: all one). On ``S = 0``
+    this is the prior alone (:func:`~.solve.prior_bias`)."""
+    from kernels.prior import add_curvature_prior, weight_curvature_prior
     from kernels.prior import add_prior as add_membrane
 
     scale = voxel_size_m ** 2  # strengths are per voxel^2
@@ -120,4 +125,7 @@ def prior_terms(S: np.ndarray, band, prior: PriorConfig, stencil: int,
     far = None
     if prior.curvature > 0:
         far = add_curvature_prior(S, band.nbr, lam2=prior.curvature / scale)
+        if curvature_weights is not None:
+            weight_curvature_prior(S, far, band.nbr, curvature_weights,
+                                   lam2=prior.curvature / scale)
     return b0, far

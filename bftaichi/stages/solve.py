@@ -60,8 +60,8 @@ class SolverConfig:
     then holds the squared bias beyond what the mean's own noise puts into the estimate
     (:func:`~.variance.estimate_variance`), fully correlated between neighbours as a
     deterministic offset: creases, thin parts and the prior's extrapolation get the larger
-    sigma their errors have. Not with the robust curvature prior (``prior.curvature_scale >
-    0``), whose reweighted stencil this estimate does not rebuild."""
+    sigma their errors have. With the robust curvature prior (``prior.curvature_scale > 0``)
+    the estimate uses the prior at its last weights."""
 
     def check(self) -> None:
         check_range("solver.tol", self.tol, 0.0, 1.0, lo_open=True)
@@ -149,6 +149,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     # variance (step 6, on the same system) is that of the data and the prior without them
     S[active, CENTRE] -= k
     h[active] -= k * target[active]
+    if reweight:  # the prior the variance and the bias estimate see
+        system.curvature_weights = W
     stats = {"converged": info["converged"], "iterations": iterations,
              "relative_residual": info["relative_residual"]}
     stats["free_space"] = {"passes": n_pass, "anchored": n_anchored, "free_voxels": n_free,
@@ -171,8 +173,9 @@ def prior_bias(system, band, prior, stencil: int, voxel_size_m: float, mean: np.
     ``A^T W (y - A mu)``. ``P mu - b0`` is computed from the prior alone
     (:func:`~.prior.prior_terms` on an empty stencil), so the data term need not be kept;
     ``system`` is the posterior's (without the free-space anchors, which enforce an
-    inequality and are no prior). The solve stops at ``solver.probe_tol``: the bias enters a
-    variance, like the probes."""
+    inequality and are no prior; with the robust curvature prior, at the weights its last
+    reweighting left, :attr:`~.prior.System.curvature_weights`). The solve stops at
+    ``solver.probe_tol``: the bias enters a variance, like the probes."""
     from kernels.compact import CompactStencil
     from kernels.pcg import pcg
     from kernels.stencil import apply_Q
@@ -180,7 +183,7 @@ def prior_bias(system, band, prior, stencil: int, voxel_size_m: float, mean: np.
     from .prior import prior_terms
 
     P = np.zeros_like(system.S)
-    b0, far = prior_terms(P, band, prior, stencil, voxel_size_m)
+    b0, far = prior_terms(P, band, prior, stencil, voxel_size_m, system.curvature_weights)
     force = apply_Q(P, band.nbr, mean.astype(np.float64), far=far) - b0
     del P, far
     compact = CompactStencil(system.S, system.nbr, system.far, check=False)
