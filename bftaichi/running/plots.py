@@ -75,7 +75,8 @@ def coverage_curve(error: np.ndarray, sigma: np.ndarray, k: np.ndarray):
 def _figure(figsize=(6.4, 4.4), margins=(0.75, 0.2, 0.55, 0.4)):
     """A figure with one axes at fixed ``margins`` (left, right, bottom, top; inches): the run's
     plots have fixed labels, so :func:`save_png` need not measure them (``tight_layout`` draws
-    every text once more: ~0.1 s a figure, half of its cost)."""
+    every text once more: the five plots of the default run took 1.75-1.82 s without it
+    against 1.94-2.04 s with it, three alternating calls of :func:`write_run_plots` each)."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=figsize, dpi=110)
