@@ -130,9 +130,12 @@ def _add_curvature_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
         S[i, CENTRE] = ti.cast(ti.cast(S[i, CENTRE], ti.f64) + diag, ti.f32)
 
 
-def add_curvature_prior(S, nbr, *, lam2: float) -> tuple:
+def add_curvature_prior(S, nbr, *, lam2: float, weights=None) -> tuple:
     """Add the second-order (curvature) prior ``lam2 |D x|^2`` to the stencil ``S``; return its
-    entries at offsets +-2 as the far part ``(S2, nbr2)`` of Q (kernels/stencil.py).
+    entries at offsets +-2 as the far part ``(S2, nbr2)`` of Q (kernels/stencil.py). With
+    ``weights`` (N, 3) float32, the weights of the second differences centred at each voxel
+    along each axis (those :func:`reweight_curvature_prior` leaves in a system), the prior is
+    ``lam2 D^T diag(weights) D``.
 
     D holds one row per band voxel j and axis e whose neighbours ``j +- e`` are both band
     voxels: the second difference ``x_{j-e} - 2 x_j + x_{j+e}``. Unlike the membrane, this
@@ -162,10 +165,14 @@ def add_curvature_prior(S, nbr, *, lam2: float) -> tuple:
                              f"{_shape_of(arr, name)}")
     _check_dtype(S, "S", (np.float32,))
     _check_dtype(nbr, "nbr", (np.int32,))
+    if weights is not None and _shape_of(weights, "weights") != (n, 3):
+        raise ValueError(f"prior argument weights must have shape (N, 3), got "
+                         f"{_shape_of(weights, 'weights')}")
     S2 = np.zeros((n, 6), np.float32)
     nbr2 = np.full((n, 6), -1, np.int32)
     if n:
-        _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), S2, 0)
+        W = S2 if weights is None else np.ascontiguousarray(weights, np.float32)
+        _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), W, int(weights is not None))
     return S2, nbr2
 
 
@@ -202,16 +209,6 @@ def reweight_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: floa
     dW = np.empty_like(W)
     _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W, dW,
                        1.0 / float(scale_m) ** 2)
-    _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
-
-
-def weight_curvature_prior(S, far, nbr, W, *, lam2: float) -> None:
-    """Give the curvature prior that :func:`add_curvature_prior` put into ``S`` and ``far``
-    (all weights one, strength ``lam2``) the weights ``W`` (N, 3) float32 of its second
-    differences (those :func:`reweight_curvature_prior` left in a system), in place: the same
-    update as one reweighting step from all-one weights."""
-    S2, nbr2 = far
-    dW = np.ascontiguousarray(W, np.float32) - np.float32(1.0)
     _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
 
 

@@ -20,7 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from kernels.band import build_band
 from kernels.stencil import apply_Q, check_far, check_stencil
 from kernels.prior import (ANCHOR_MODES, add_curvature_prior, add_prior,
-                           reweight_curvature_prior, weight_curvature_prior)
+                           reweight_curvature_prior)
 
 VOXEL = 0.01
 TAU_B = 0.02
@@ -283,9 +283,9 @@ def test_robust_curvature_prior_reweights_to_the_reference_at_the_last_field(ban
 
 
 def test_weighted_curvature_prior_is_the_one_the_reweighting_left(band):
-    """``weight_curvature_prior`` gives a fresh curvature prior the weights a system was left
-    with after reweighting (what ``solver.prior_bias`` rebuilds the prior from): the same Q as
-    the reference ``lam2 D^T diag(w) D``, and not the all-one prior."""
+    """``add_curvature_prior(..., weights=W)`` builds the prior with the weights a system was
+    left with after reweighting (what ``solver.prior_bias`` rebuilds the prior from): the same
+    Q as the reference ``lam2 D^T diag(w) D``, and not the all-one prior."""
     nbr, ijk, c = band["nbr"], band["ijk"], 0.3 * VOXEL
     n = len(ijk)
     crease = (np.abs((ijk[:, 0] + 0.5) * VOXEL) + 0.5 * (ijk[:, 2] + 0.5) * VOXEL
@@ -294,10 +294,10 @@ def test_weighted_curvature_prior_is_the_one_the_reweighting_left(band):
     far = add_curvature_prior(S, nbr, lam2=LAM)
     W = np.ones((n, 3), np.float32)
     reweight_curvature_prior(S, far, nbr, crease, W, lam2=LAM, scale_m=c)
+    unit_S = np.zeros((n, 27), np.float32)
+    unit = curvature_csr(unit_S, nbr, *add_curvature_prior(unit_S, nbr, lam2=LAM))
     fresh = np.zeros((n, 27), np.float32)
-    far_fresh = add_curvature_prior(fresh, nbr, lam2=LAM)
-    unit = curvature_csr(fresh, nbr, *far_fresh)
-    weight_curvature_prior(fresh, far_fresh, nbr, W, lam2=LAM)
+    far_fresh = add_curvature_prior(fresh, nbr, lam2=LAM, weights=W)
     Q, Q_fresh = curvature_csr(S, nbr, *far), curvature_csr(fresh, nbr, *far_fresh)
     Q_ref = reference_curvature(ijk, LAM, crease.astype(np.float64), c)
     assert abs(Q_fresh - Q_ref).max() <= 1e-5 * LAM

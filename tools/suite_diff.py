@@ -81,7 +81,10 @@ def scores(old: dict, new: dict) -> str:
     both = [n for n in old if n in new]
     if not both:
         return "no case in both runs"
-    mean = lambda rows, key: sum(rows[n][key] for n in both) / len(both)  # noqa: E731
+
+    def mean(rows, key):
+        return sum(rows[n][key] for n in both) / len(both)
+
     ause = math.exp(sum(math.log(new[n]["ause"] / old[n]["ause"]) for n in both) / len(both))
     return (f"over the {len(both)} cases of both: mean NLL - const "
             f"{mean(old, 'nll_vs_constant'):+.3f} -> {mean(new, 'nll_vs_constant'):+.3f}; "

@@ -114,7 +114,7 @@ def prior_terms(S: np.ndarray, band, prior: PriorConfig, stencil: int,
     offsets +-2 (the curvature prior; None without it). ``curvature_weights``: the robust
     curvature prior's weights (:attr:`System.curvature_weights`; None: all one). On ``S = 0``
     this is the prior alone (:func:`~.solve.prior_bias`)."""
-    from kernels.prior import add_curvature_prior, weight_curvature_prior
+    from kernels.prior import add_curvature_prior
     from kernels.prior import add_prior as add_membrane
 
     scale = voxel_size_m ** 2  # strengths are per voxel^2
@@ -124,8 +124,6 @@ def prior_terms(S: np.ndarray, band, prior: PriorConfig, stencil: int,
                  anchors=prior.anchors)
     far = None
     if prior.curvature > 0:
-        far = add_curvature_prior(S, band.nbr, lam2=prior.curvature / scale)
-        if curvature_weights is not None:
-            weight_curvature_prior(S, far, band.nbr, curvature_weights,
-                                   lam2=prior.curvature / scale)
+        far = add_curvature_prior(S, band.nbr, lam2=prior.curvature / scale,
+                                  weights=curvature_weights)
     return b0, far
