@@ -14,11 +14,14 @@ surface gives every view the same value; their spread beyond the modelled noise,
 max(0, var(y) - mean(sigma_k^2))``, kept only where the observations disagree in sign:
 ``conflict = 2 min(W+, W-) / (W+ + W-)`` over the observations beyond ``T`` voxels either side,
 ``excess * conflict^POW``. A vertex gets ``sigma^2 + excess`` interpolated over its cell's
-corners, or the corners' largest. Coverage at 1 / 2 / 3 sigma and the NLL minus the best
+corners, or the corners' largest (``--unsigned``: the spread alone; ``--no-scale``: without the normal's
+scaling; ``--reach R``: observed to R voxels behind a surface instead of ``tau_b``). Coverage at 1 / 2 / 3 sigma and the NLL minus the best
 constant's are printed for sigma alone and with each::
 
     python docs/experiments/sheet_conflict.py beetle/dense_near --section section.png
     python docs/experiments/sheet_conflict.py beetle/dense_near homer/dense_near --T 2 --pow 2
+    python docs/experiments/sheet_conflict.py beetle/dense_near homer/dense_near --reach 2 --T 1
+    python docs/experiments/sheet_conflict.py homer/dense_near --unsigned --no-scale
 """
 
 from __future__ import annotations
@@ -72,8 +75,10 @@ def _normals(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.where(inner, cos, np.linalg.norm(rays, axis=-1))
 
 
-def _excess(post, cfg, frames, T: float, power: float) -> np.ndarray:
+def _excess(post, cfg, frames, T: float, power: float, reach: float, signed: bool,
+            scaled: bool) -> np.ndarray:
     h, tb = post.voxel_size, cfg.tsdf.bootstrap_trunc_m
+    behind = reach * h if reach > 0 else tb
     X = (post.ijk.astype(np.float64) + 0.5) * h
     N = len(X)
     n, s1, s2, ev, wp, wn = (np.zeros(N) for _ in range(6))
@@ -91,8 +96,10 @@ def _excess(post, cfg, frames, T: float, power: float) -> np.ndarray:
         ok &= (u >= 0) & (u < W) & (v >= 0) & (v < H)
         uc, vc = np.clip(u, 0, W - 1), np.clip(v, 0, H - 1)
         d = np.where(ok, f.depth_m[vc, uc], 0.0)
-        ok &= (d > 0) & (d - z >= -tb)
-        y = np.minimum(d - z, tb) * _normals(f.depth_m, f.K)[vc, uc]
+        ok &= (d > 0) & (d - z >= -behind)
+        y = np.minimum(d - z, tb)
+        if scaled:
+            y = y * _normals(f.depth_m, f.K)[vc, uc]
         n += ok
         s1 += np.where(ok, y, 0)
         s2 += np.where(ok, y * y, 0)
@@ -102,7 +109,7 @@ def _excess(post, cfg, frames, T: float, power: float) -> np.ndarray:
     m = np.maximum(n, 1)
     excess = np.where(n >= 2, np.maximum(s2 / m - (s1 / m) ** 2 - ev / m, 0.0), 0.0)
     conflict = 2 * np.minimum(wp, wn) / np.maximum(wp + wn, 1)
-    return excess * conflict ** power
+    return excess * conflict ** power if signed else excess
 
 
 def _at_vertices(post, values, vertices) -> tuple[np.ndarray, np.ndarray]:
@@ -157,6 +164,10 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--T", type=float, default=2.0, help="voxels beyond which a sign counts")
     ap.add_argument("--pow", type=float, default=1.0, help="power of the conflict")
+    ap.add_argument("--reach", type=float, default=0.0, help="voxels observed behind a surface "
+                    "(default 0: the bootstrap's tau_b)")
+    ap.add_argument("--unsigned", action="store_true", help="the spread alone, no conflict")
+    ap.add_argument("--no-scale", action="store_true", help="no |<n, ray>| scaling")
     ap.add_argument("--section", type=Path, help="draw the first case's cross-sections here")
     args = ap.parse_args(argv)
 
@@ -183,7 +194,8 @@ def main(argv=None) -> int:
         print(f"{case} ({h * 1e3:g} mm voxels)")
         print(_bins("posterior mesh", err, h))
         print(_bins("TSDF mesh", vertex_errors(tsdf_mesh.vertices, gt), h))
-        interp, top = _at_vertices(post, _excess(post, cfg, frames, args.T, args.pow),
+        interp, top = _at_vertices(post, _excess(post, cfg, frames, args.T, args.pow, args.reach,
+                                           not args.unsigned, not args.no_scale),
                                    mesh.vertices)
         print(_line("sigma", err, sigma))
         print(_line("+ excess, interpolated", err, np.sqrt(sigma ** 2 + interp)))
