@@ -223,6 +223,40 @@ def test_a_view_of_unseen_surface_beats_re_observing_a_seen_side(half_sphere):
     assert planner.rho > 0 and planner.s0 > np.median(post.var[planner.omega])  # unseen: vaguer
 
 
+def test_rank_screens_at_twice_the_stride_and_scores_the_best_again(half_sphere):
+    """nbv.rerank = k: every candidate scored at twice the stride, the k best of that screen
+    scored again at the full stride and ranked first by it; rerank = 0 (or k >= n) is the
+    full-stride ranking itself."""
+    from dataclasses import replace
+
+    cfg, frames, _, post = half_sphere
+    lo, hi = nbv.region_of_interest(post.ijk, post.voxel_size, 1.5, [0, 0, 0])
+    coverage = nbv.coverage_grid(cfg, lo, hi, post.voxel_size)
+    for f in frames:
+        coverage.mark(f.depth_m, f.K, f.T_W_C, stride=1)
+    poses = nbv.sphere_candidates([0, 0, 0], 0.8, 12, -40.0, 60.0)
+
+    def ranking(k):
+        c = replace(cfg, nbv=replace(cfg.nbv, rerank=k))
+        return nbv.Planner(post, c, frames.K, frames.image_size, coverage).rank(poses)
+
+    full = ranking(0)
+    assert [r["stride"] for r in full] == [1] * len(poses)
+    assert [r["index"] for r in ranking(len(poses))] == [r["index"] for r in full]
+    planner = nbv.Planner(post, cfg, frames.K, frames.image_size, coverage)
+    screen = {i: planner.utility(T, 2)["utility"] for i, T in enumerate(poses)}
+    best4 = sorted(screen, key=lambda i: (-screen[i], i))[:4]
+    ranked = ranking(4)
+    assert sorted(r["index"] for r in ranked) == list(range(len(poses)))
+    head, tail = ranked[:4], ranked[4:]
+    assert sorted(r["index"] for r in head) == sorted(best4)
+    exact = {r["index"]: r["utility"] for r in full}
+    assert all(r["stride"] == 1 and r["utility"] == exact[r["index"]] for r in head)
+    assert [r["utility"] for r in head] == sorted((r["utility"] for r in head), reverse=True)
+    assert all(r["stride"] == 2 and r["utility"] == screen[r["index"]] for r in tail)
+    assert [r["rank"] for r in ranked] == list(range(len(poses)))
+
+
 # -- commands ----------------------------------------------------------------------------------
 
 def test_run_with_nbv_and_the_nbv_command(tmp_path, capsys):

@@ -267,8 +267,6 @@ class Planner:
         o = self.observation = post.observation or cfg.observation
         tau = post.trunc_m or cfg.tsdf.trunc_m
         self.stride = cfg.nbv.stride or o.stride
-        # information of a strided image relative to the real frames' stride (pixel count)
-        self.info_scale = (self.stride / o.stride) ** 2
         self.depth_range = depth_range or (cfg.scene.depth_min_m, cfg.scene.depth_max_m)
         self.observed = post.band.observed.astype(np.uint8)
         # the noise fitted to the fused frames (ObservationConfig.fit_noise) holds for new ones
@@ -288,21 +286,25 @@ class Planner:
             centres = points_in_world((post.ijk[self.omega] + 0.5) * vs, post.origin)
             self.rho = float(self.omega.sum()) / len(np.unique(coverage.cells_of(centres)))
 
-    def predict_depth(self, T_W_C) -> np.ndarray:
-        """(H, W) float32 predicted depth of a view (0 where no surface is predicted)."""
+    def predict_depth(self, T_W_C, stride: int | None = None) -> np.ndarray:
+        """(H, W) float32 predicted depth of a view (0 where no surface is predicted), at every
+        ``stride``-th pixel (default: the planner's)."""
         from kernels.raycast import raycast_depth
 
         band = self.post.band
         T_L_C = pose_in_local(T_W_C, self.post.origin)
         return raycast_depth(band.block_keys, band.block_table, self.post.mean, self.observed,
                              self.post.voxel_size, self.K, T_L_C, self.width, self.height,
-                             self.depth_range[0], self.depth_range[1], stride=self.stride)
+                             self.depth_range[0], self.depth_range[1],
+                             stride=stride or self.stride)
 
-    def information(self, depth, T_W_C) -> np.ndarray:
-        """(N,) float64 ``(A_v^T W_v A_v)_ii`` of the hypothetical frame ``depth`` at T_W_C,
-        scaled to the real frames' stride."""
+    def information(self, depth, T_W_C, stride: int | None = None) -> np.ndarray:
+        """(N,) float64 ``(A_v^T W_v A_v)_ii`` of the hypothetical frame ``depth`` (cast at
+        ``stride``, default the planner's) at T_W_C, scaled to the real frames' stride."""
+        stride = stride or self.stride
+        scale = (stride / self.observation.stride) ** 2
         return self.observer.information(depth, self.K, pose_in_local(T_W_C, self.post.origin),
-                                         stride=self.stride) * self.info_scale
+                                         stride=stride) * scale
 
     def _prior_gain(self, T_W_C) -> float:
         """``g0 = s0 - s0 / (1 + s0 w0)`` at the candidate's distance to the region's centre."""
@@ -315,32 +317,48 @@ class Planner:
         w0 = max(pixels, 1e-3) / sigma2
         return self.s0 - self.s0 / (1.0 + self.s0 * w0)
 
-    def utility(self, T_W_C) -> dict:
-        """Score one view: ``utility`` (metres^2) = ``known`` + ``unknown``, and
-        ``frontier_cells``, ``hit_fraction`` (of the strided pixels that predict a surface)."""
+    def utility(self, T_W_C, stride: int | None = None) -> dict:
+        """Score one view, its rays cast at every ``stride``-th pixel (default: the
+        planner's): ``utility`` (metres^2) = ``known`` + ``unknown``, and ``frontier_cells``,
+        ``hit_fraction`` (of the strided pixels that predict a surface), ``stride``."""
         T_W_C = check_pose(T_W_C, "candidate pose")
-        depth = self.predict_depth(T_W_C)
-        d = self.information(depth, T_W_C)[self.omega]
+        stride = stride or self.stride
+        depth = self.predict_depth(T_W_C, stride)
+        d = self.information(depth, T_W_C, stride)[self.omega]
         s = self.s_omega
         known = float(np.sum(s * s * d / (1.0 + s * d)))  # sum (s - s / (1 + s d))
         cells, unknown = 0, 0.0
         if self.coverage is not None:
-            cells = self.coverage.count_unknown(depth, self.K, T_W_C, self.stride,
+            cells = self.coverage.count_unknown(depth, self.K, T_W_C, stride,
                                                 self.depth_range[1], frontier=True)
             unknown = self.rho * self._prior_gain(T_W_C) * cells
-        n_px = len(range(0, self.height, self.stride)) * len(range(0, self.width, self.stride))
+        n_px = len(range(0, self.height, stride)) * len(range(0, self.width, stride))
         return {"utility": known + unknown, "known": known, "unknown": unknown,
-                "frontier_cells": cells, "hit_fraction": float(np.count_nonzero(depth)) / n_px}
+                "frontier_cells": cells, "hit_fraction": float(np.count_nonzero(depth)) / n_px,
+                "stride": stride}
 
     def rank(self, poses, progress=None) -> list[dict]:
         """Score every pose (n, 4, 4); return dicts (``index``, ``rank`` 0 = best, ``pose``,
-        the :meth:`utility` fields) sorted best first (ties keep the candidate order)."""
+        the :meth:`utility` fields) sorted best first (ties keep the candidate order).
+
+        With ``nbv.rerank = k > 0`` (and more than k poses) every pose is first scored at
+        twice the planner's stride, a screen with four times fewer rays; the k best of the
+        screen are scored again at the full stride and ranked first, by that score; the others
+        follow in the screen's order with the screen's fields (``stride`` says which)."""
         poses = np.asarray(poses, np.float64)
         if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
             raise ConfigError(f"candidate poses must be (n, 4, 4) with n >= 1, got {poses.shape}")
+        k = self.cfg.nbv.rerank
+        screen = 2 * self.stride if 0 < k < len(poses) else None
         it = progress(range(len(poses))) if progress else range(len(poses))
-        scored = [dict(index=i, pose=poses[i].tolist(), **self.utility(poses[i])) for i in it]
+        scored = [dict(index=i, pose=poses[i].tolist(), **self.utility(poses[i], screen))
+                  for i in it]
         order = sorted(range(len(scored)), key=lambda i: (-scored[i]["utility"], i))
+        if screen is not None:
+            top = order[:k]
+            for i in top:
+                scored[i].update(self.utility(poses[i]))
+            order = sorted(top, key=lambda i: (-scored[i]["utility"], i)) + order[k:]
         return [dict(scored[i], rank=r) for r, i in enumerate(order)]
 
 

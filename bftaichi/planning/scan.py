@@ -151,8 +151,8 @@ def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress
             choice = free[int(np.argmax(d))]
         else:
             planner = Planner(post, cfg, scene.K, scene.size, coverage)
-            if policy == "bayes":
-                scores = [planner.utility(scene.poses[c])["utility"] for c in free]
+            if policy == "bayes":  # the best of the ranking (nbv.rerank: after a screen)
+                choice = free[planner.rank(scene.poses[free])[0]["index"]]
             else:
                 score = {"coverage": coverage.count_unknown,
                          "entropy": coverage.average_entropy}.get(policy)
@@ -161,7 +161,7 @@ def _run_policy(scene: _Scene, policy: str, seed: int, roi, thresholds, progress
                                               not_frontier=coverage.grid.not_frontier())
                 scores = [score(planner.predict_depth(scene.poses[c]), scene.K, scene.poses[c],
                                 planner.stride, planner.depth_range[1]) for c in free]
-            choice = free[int(np.argmax(scores))]  # ties: the lowest candidate index
+                choice = free[int(np.argmax(scores))]  # ties: the lowest candidate index
         record["seconds_choose"] = round(time.perf_counter() - t1, 3)
         steps.append(record)
         add(choice)
