@@ -119,6 +119,22 @@ def test_evalviews_table_and_gross_errors_on_a_few_real_frames(tmp_path):
     assert "mesh.ply:" in out and "tsdf_mesh.ply:" in out
 
 
+def test_kernel_profile_shares_the_kernel_time_of_a_run(tmp_path):
+    sets = [a for s in TINY_SCENE_SETS for a in ("--set", s)]
+    out = _run([TOOLS / "kernel_profile.py", "run", "--out", tmp_path / "run", *sets,
+                "--top", "40"])
+    assert (tmp_path / "run" / "mesh.ply").exists()  # the command itself ran
+    lines = out[out.index("kernel time "):].splitlines()
+    total = float(lines[0].split()[2])
+    rows = {r.split()[0]: (float(r.split()[1]), float(r.split()[2].rstrip("%")))
+            for r in lines[2:] if r.strip()}
+    assert {"_integrate_frame", "observe_frame", "apply_dot"} <= set(rows)
+    # every kernel is listed (--top 40), each rounded to 1 ms and 0.1 %
+    assert total > 0
+    assert sum(sec for sec, _ in rows.values()) == pytest.approx(total, abs=0.01 + 5e-4 * len(rows))
+    assert sum(share for _, share in rows.values()) == pytest.approx(100, abs=0.05 * len(rows))
+
+
 def test_sigma_breakdown_compares_bulk_and_mean_square():
     out = _run([TOOLS / "sigma_breakdown.py", "homer", "few_views",
                 "--set", "synthetic.n_views=4"])

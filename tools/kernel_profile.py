@@ -1,0 +1,63 @@
+#!/usr/bin/env python
+"""Where a command's kernel time goes: run a ``bftaichi`` command with Taichi's kernel profiler
+on and print, per kernel, its total time, its share of all kernel time and how many of its
+offloaded loops ran.
+
+The profiler times each launch on the device (here the CPU threads), so the figures are kernel
+time only: no Python, no frame reading, no Taichi front end. Kernels Taichi splits into several
+offloaded loops (``name_c.._kernel_N_range_for``) are summed under their name, and so are
+kernels of one name in different modules. The profiler adds a little time to every launch: use
+it to see shares, not for benchmarks::
+
+    python tools/kernel_profile.py fuse ../shared/data/rgbd/7scenes-redkitchen --voxel 0.02 --out out/k2
+    python tools/kernel_profile.py run --out out/default --overwrite --top 15
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from collections import defaultdict
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = 25
+    if "--top" in argv:
+        i = argv.index("--top")
+        top = int(argv[i + 1])
+        del argv[i:i + 2]
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0
+    import taichi as ti
+
+    init = ti.init
+
+    def profiled_init(*args, **kwargs):
+        kwargs["kernel_profiler"] = True
+        return init(*args, **kwargs)
+
+    ti.init = profiled_init
+    import bftaichi.cli
+
+    code = bftaichi.cli.main(argv)
+    from taichi.profiler.kernel_profiler import get_default_kernel_profiler
+
+    profiler = get_default_kernel_profiler()
+    profiler._update_records()  # Taichi 1.7: the backend's records into _traced_records
+    totals, calls = defaultdict(float), defaultdict(int)
+    for rec in profiler._traced_records:
+        name = re.sub(r"_c\d+_\d+_kernel_\d+_.*$", "", rec.name)
+        totals[name] += rec.kernel_time / 1000.0  # ms -> s
+        calls[name] += 1
+    total = sum(totals.values())
+    print(f"kernel time {total:.2f} s in {len(totals)} kernels ({sum(calls.values())} offloaded loops run)")
+    print(f"{'kernel':40s} {'seconds':>9s} {'share':>7s} {'loops run':>10s}")
+    for name, sec in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:
+        print(f"{name:40s} {sec:9.3f} {100 * sec / max(total, 1e-12):6.1f}% {calls[name]:10d}")
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
