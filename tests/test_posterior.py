@@ -187,3 +187,32 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     d = np.abs(band.ijk[:, None, :] - band.ijk[moved][None]).max(-1).min(1)
     away = d > 4
     np.testing.assert_allclose(fixed[away], post.mean[away], atol=0.05 * vs)
+
+
+def test_noise_fit_pairs_limited_to_nearly_the_same_point():
+    """estimate_extra_noise(max_offset_px=...): only the pairs whose point projects within that
+    many pixels of the paired pixel's centre count; a limit no offset reaches (half the cast
+    stride's diagonal) keeps every pair, a tight one fewer."""
+    from bftaichi.frame import local_frames
+    from bftaichi.running.pipeline import open_frames
+    from bftaichi.stages.band import build_band
+    from bftaichi.stages.observe import estimate_extra_noise
+
+    cfg = _sphere_cfg(0.02, ["synthetic.noise=gaussian", "synthetic.sigma_m=0.004"])
+    recon = bf.Reconstructor(cfg)
+    for f in open_frames(cfg):
+        recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
+    band, _ = build_band(recon.voxels, cfg.tsdf.bootstrap_trunc_m)
+    frames = local_frames(recon.frames, recon.origin)
+
+    def fit(offset, stride=1):
+        return estimate_extra_noise(frames, band, cfg.observation, cfg.tsdf.voxel_size_m,
+                                    cfg.tsdf.bootstrap_trunc_m, (0.1, 10.0), stride=stride,
+                                    max_offset_px=offset)
+
+    every = fit(None)
+    assert fit(0.75) == every  # the nearest pixel's centre is at most 0.71 px away
+    tight = fit(0.25)
+    assert 0 < tight["pixels"] < 0.6 * every["pixels"]
+    # the 4 mm of noise is found from the nearly coincident pairs too
+    assert 0.0025 < tight["sigma_extra_m"] < 0.0045

@@ -320,7 +320,8 @@ _MIN_CAST = 5000
 
 def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: float,
                          bootstrap_trunc_m: float, depth_range_m: tuple[float, float], *,
-                         n_frames: int = 16, stride: int = 4) -> dict:
+                         n_frames: int = 16, stride: int = 4,
+                         max_offset_px: float | None = None) -> dict:
     """Per-frame depth noise the sensor model does not explain, fitted to the frames themselves.
 
     Recorded trajectories carry pose and calibration errors that no axial noise model holds
@@ -357,6 +358,10 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     in):
     ``e_corr = sqrt(clip(c, 0, e^2))``; the rest, ``sqrt(e^2 - e_corr^2)``, is independent
     per pixel (:func:`make_observer` splits them).
+
+    ``max_offset_px`` (None: every pair) keeps only the pairs whose point projects within that
+    many pixels of the paired pixel's centre in the other frame (docs/experiments: the two
+    pixels then see nearly the same point, so the bootstrap's error cancels more of the way).
 
     Returns ``{"sigma_extra_m": e, "sigma_corr_m": e_corr, "pixels": n, "frames": k,
     "median_normalised_model": m0}`` (``n`` the pixel pairs; m0: the statistic with
@@ -396,9 +401,15 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             front = zj > 0
             cu = np.full(len(p), -1)
             cv = np.full(len(p), -1)
-            cu[front] = np.rint((K_j[0, 0] * p[front, 0] / zj[front] + K_j[0, 2]) / st_j)
-            cv[front] = np.rint((K_j[1, 1] * p[front, 1] / zj[front] + K_j[1, 2]) / st_j)
+            fu = (K_j[0, 0] * p[front, 0] / zj[front] + K_j[0, 2]) / st_j
+            fv = (K_j[1, 1] * p[front, 1] / zj[front] + K_j[1, 2]) / st_j
+            cu[front] = np.rint(fu)
+            cv[front] = np.rint(fv)
             inside = front & (cu >= 0) & (cv >= 0) & (cu < m_j.shape[1]) & (cv < m_j.shape[0])
+            if max_offset_px is not None:  # the paired pixel's centre near the projected point
+                near = np.zeros(len(p), bool)
+                near[front] = np.hypot(fu - np.rint(fu), fv - np.rint(fv)) * st_j <= max_offset_px
+                inside &= near
             ok = np.zeros(len(p), bool)
             ok[inside] = m_j[cv[inside], cu[inside]]
             ok[ok] &= np.abs(D_j[cv[ok], cu[ok]] - zj[ok]) < tol[ok]
