@@ -360,8 +360,9 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     per pixel (:func:`make_observer` splits them).
 
     ``max_offset_px`` (None: every pair) keeps only the pairs whose point projects within that
-    many pixels of the paired pixel's centre in the other frame (docs/experiments: the two
-    pixels then see nearly the same point, so the bootstrap's error cancels more of the way).
+    many pixels of the paired pixel's centre in the other frame: the two pixels then see nearly
+    the same point, so the bootstrap's error cancels more of the way (docs/measurements.md,
+    "The noise fit on synthetic captures")).
 
     Returns ``{"sigma_extra_m": e, "sigma_corr_m": e_corr, "pixels": n, "frames": k,
     "median_normalised_model": m0}`` (``n`` the pixel pairs; m0: the statistic with
@@ -403,12 +404,11 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             cv = np.full(len(p), -1)
             fu = (K_j[0, 0] * p[front, 0] / zj[front] + K_j[0, 2]) / st_j
             fv = (K_j[1, 1] * p[front, 1] / zj[front] + K_j[1, 2]) / st_j
-            cu[front] = np.rint(fu)
-            cv[front] = np.rint(fv)
+            cu[front], cv[front] = np.rint(fu), np.rint(fv)
             inside = front & (cu >= 0) & (cv >= 0) & (cu < m_j.shape[1]) & (cv < m_j.shape[0])
             if max_offset_px is not None:  # the paired pixel's centre near the projected point
                 near = np.zeros(len(p), bool)
-                near[front] = np.hypot(fu - np.rint(fu), fv - np.rint(fv)) * st_j <= max_offset_px
+                near[front] = np.hypot(fu - cu[front], fv - cv[front]) * st_j <= max_offset_px
                 inside &= near
             ok = np.zeros(len(p), bool)
             ok[inside] = m_j[cv[inside], cu[inside]]

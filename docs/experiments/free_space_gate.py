@@ -32,6 +32,9 @@ sys.path.insert(0, str(ROOT))
 import bftaichi.reconstructor as reconstructor  # noqa: E402
 from bftaichi.stages import band as band_module  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sheet_conflict import projective_sdf  # noqa: E402  (the TSDF's observation, in numpy)
+
 FRACTION = float(os.environ.get("GF", "0.4"))
 MARGIN = float(os.environ.get("GM", "1.0"))
 BIG = os.environ.get("GREF", "big") == "big"
@@ -48,19 +51,9 @@ def free_fraction(config, band, frames) -> np.ndarray:
     seen, free = np.zeros(len(X)), np.zeros(len(X))
     for i in range(len(frames)):
         f = frames[i]
-        T = np.asarray(f.T_W_C, np.float64)
-        Xc = (X - T[:3, 3]) @ T[:3, :3]
-        z = Xc[:, 2]
-        ok = z > 1e-6
-        zs = np.where(ok, z, 1.0)
-        H, W = f.depth_m.shape
-        u = np.floor(f.K[0, 0] * Xc[:, 0] / zs + f.K[0, 2] + 0.5).astype(np.int64)
-        v = np.floor(f.K[1, 1] * Xc[:, 1] / zs + f.K[1, 2] + 0.5).astype(np.int64)
-        ok &= (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        d = np.where(ok, f.depth_m[np.clip(v, 0, H - 1), np.clip(u, 0, W - 1)], 0.0)
-        ok &= (d > 0) & (d - z >= -tb)
+        ok, _, sdf, _, _ = projective_sdf(X, f, np.asarray(f.T_W_C, np.float64), tb)
         seen += ok
-        free += ok & (d - z > margin)
+        free += ok & (sdf > margin)
     return np.where(seen > 0, free / np.maximum(seen, 1), 0.0)
 
 

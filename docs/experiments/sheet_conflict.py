@@ -75,6 +75,26 @@ def _normals(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.where(inner, cos, np.linalg.norm(rays, axis=-1))
 
 
+def projective_sdf(X: np.ndarray, frame, T_C: np.ndarray, behind_m: float):
+    """The TSDF's projective observation of the points ``X`` (N, 3; the frame of ``T_C``, the
+    camera-to-that-frame pose) by ``frame``: the nearest pixel ``floor(K x / z + 0.5)``, its
+    depth ``d`` and ``sdf = d - z``, observed where ``z > 0``, the pixel is in the image, ``d >
+    0`` and ``sdf >= -behind_m``. Returns ``(ok, d, sdf, v, u)`` (pixel indices clipped to the
+    image)."""
+    Xc = (X - T_C[:3, 3]) @ T_C[:3, :3]
+    z = Xc[:, 2]
+    ok = z > 1e-6
+    zs = np.where(ok, z, 1.0)
+    u = np.floor(frame.K[0, 0] * Xc[:, 0] / zs + frame.K[0, 2] + 0.5).astype(np.int64)
+    v = np.floor(frame.K[1, 1] * Xc[:, 1] / zs + frame.K[1, 2] + 0.5).astype(np.int64)
+    H, W = frame.depth_m.shape
+    ok &= (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    vc, uc = np.clip(v, 0, H - 1), np.clip(u, 0, W - 1)
+    d = np.where(ok, frame.depth_m[vc, uc], 0.0)
+    ok &= (d > 0) & (d - z >= -behind_m)
+    return ok, d, d - z, vc, uc
+
+
 def _excess(post, cfg, frames, T: float, power: float, reach: float, signed: bool,
             scaled: bool) -> np.ndarray:
     h, tb = post.voxel_size, cfg.tsdf.bootstrap_trunc_m
@@ -86,18 +106,8 @@ def _excess(post, cfg, frames, T: float, power: float, reach: float, signed: boo
     for f in frames:
         T_C = np.asarray(f.T_W_C, np.float64).copy()
         T_C[:3, 3] -= post.origin
-        Xc = (X - T_C[:3, 3]) @ T_C[:3, :3]
-        z = Xc[:, 2]
-        ok = z > 1e-6
-        zs = np.where(ok, z, 1.0)
-        u = np.floor(f.K[0, 0] * Xc[:, 0] / zs + f.K[0, 2] + 0.5).astype(np.int64)
-        v = np.floor(f.K[1, 1] * Xc[:, 1] / zs + f.K[1, 2] + 0.5).astype(np.int64)
-        H, W = f.depth_m.shape
-        ok &= (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        uc, vc = np.clip(u, 0, W - 1), np.clip(v, 0, H - 1)
-        d = np.where(ok, f.depth_m[vc, uc], 0.0)
-        ok &= (d > 0) & (d - z >= -behind)
-        y = np.minimum(d - z, tb)
+        ok, d, sdf, vc, uc = projective_sdf(X, f, T_C, behind)
+        y = np.minimum(sdf, tb)
         if scaled:
             y = y * _normals(f.depth_m, f.K)[vc, uc]
         n += ok
