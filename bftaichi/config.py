@@ -264,8 +264,16 @@ class EvalConfig:
     """Uncertainty metrics (coverage, Spearman, AUSE) are taken over the observed band voxels
     whose true signed distance is at most this many voxels: the voxels that place the surface."""
 
+    vertex_sigma: str = "sigma"
+    """The vertex property of ``mesh.ply`` that report.json's ``uncertainty`` judges against
+    the exact vertex errors: ``sigma`` (the posterior std of the SDF at the vertex) or
+    ``sigma_pos`` (``sigma / |grad mean|``, the std of the zero crossing of the posterior's
+    samples along the normal). Over the development suite ``sigma`` is the calibrated one
+    (``python tools/suite.py --set eval.vertex_sigma=sigma_pos``; docs/measurements.md)."""
+
     def check(self) -> None:
         check_range("eval.near_voxels", self.near_voxels, 0.0, 100.0, lo_open=True)
+        check_choice("eval.vertex_sigma", self.vertex_sigma, ("sigma", "sigma_pos"))
         if not self.thresholds_mm:
             raise ConfigError("eval.thresholds_mm is empty")
         for t in self.thresholds_mm:

@@ -87,8 +87,19 @@ def test_full_run_writes_the_documented_outputs(tmp_path):
     assert set(saved["metrics"]) == {"tsdf_mesh.ply", "mesh.ply"}
     assert saved["solver"]["map"]["converged"] is True
     assert saved["solver"]["variance"]["n_probes"] == cfg.solver.probes
-    u = saved["uncertainty"]  # sigma judged against the ground truth, voxels near the surface
+    u = saved["uncertainty"]  # the vertex sigma judged against the exact vertex errors
     assert u["n"] > 50 and 0 <= u["coverage@1sigma"] <= u["coverage@2sigma"] <= 1
+    assert u["median_sigma_m"] == pytest.approx(float(np.median(extra["sigma"])), rel=1e-5)
+
+
+def test_eval_vertex_sigma_chooses_the_judged_property(tmp_path):
+    cfg = bf.load_config(None, [*TINY_SCENE_SETS, "eval.vertex_sigma=sigma_pos"])
+    u = bf.run(cfg, tmp_path, progress=False)["uncertainty"]
+    _, _, extra = read_mesh_ply(tmp_path / "mesh.ply")
+    assert u["median_sigma_m"] == pytest.approx(float(np.median(extra["sigma_pos"])), rel=1e-5)
+    assert u["median_sigma_m"] != pytest.approx(float(np.median(extra["sigma"])), rel=1e-3)
+    with pytest.raises(bf.ConfigError, match="eval.vertex_sigma"):
+        bf.load_config(None, ["eval.vertex_sigma=position"])
 
 
 def test_tsdf_only_stage_skips_the_posterior(tmp_path):

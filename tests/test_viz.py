@@ -53,12 +53,17 @@ def tiny_run(tmp_path_factory):
 
 def test_run_writes_a_self_contained_preview(tiny_run):
     page = (tiny_run / "preview.html").read_text()
-    assert "MeshCat.Viewer" in page and LEGEND["sigma_pos"] in page
+    assert "MeshCat.Viewer" in page and LEGEND["sigma"] in page
     assert "http://" not in page.split("<script>")[0]  # nothing fetched from a server
     assert page.count("handle_command_bytearray") >= 4  # mesh, TSDF mesh, cameras, NBV, ...
     m = re.search(r'<span>([0-9.e+-]+)</span><span>([0-9.e+-]+)</span>', page)
     lo, hi = float(m.group(1)), float(m.group(2))
     assert 0 < lo < hi < 100  # a sigma range in millimetres
+    # the colours are the vertex sigma's (the calibrated property), not sigma_pos's
+    from plyfile import PlyData
+
+    sigma = np.asarray(PlyData.read(str(tiny_run / "mesh.ply"))["vertex"]["sigma"])
+    np.testing.assert_allclose([lo, hi], 1000 * np.percentile(sigma, [2, 98]), rtol=5e-3)
 
 
 @needs_browser

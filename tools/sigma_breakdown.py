@@ -4,7 +4,8 @@
 For one case of ``tools/suite.py`` (a mesh and a capture condition), the posterior is solved
 in-process and its mesh judged against the exact vertex errors (libigl, as the suite): the
 median and the RMS of the errors against those of sigma (a Gaussian sigma has ``median |e| =
-0.674 sigma`` and ``RMS e = sigma``), the coverage at 1 / 2 / 3 sigma, and, on the voxels
+0.674 sigma`` and ``RMS e = sigma``), the coverage at 1 / 2 / 3 sigma (and of ``sigma_pos``,
+with the mean's gradient at the vertices it divides by), and, on the voxels
 within one voxel of the mean's surface, what the variance is made of: the probe variance
 before the local-noise step and the misfit term ``b^2`` (bftaichi/stages/bandsolve.py), with
 the data's median chi2 over the band; the 5 % largest errors against the rest; and the
@@ -84,6 +85,12 @@ def main(argv=None) -> int:
     z = err / np.maximum(sigma, 1e-12)
     print("  within 1 / 2 / 3 sigma: " + " / ".join(f"{100 * np.mean(z <= k):.1f}" for k in (1, 2, 3))
           + " %")
+    grad = sigma / np.maximum(np.asarray(mesh.vertex_attributes["sigma_pos"], np.float64), 1e-30)
+    z_pos = z * grad  # the errors over sigma_pos = sigma / |grad mean|
+    print("  |grad mean| at the vertices, 5 / 50 / 95th percentile: "
+          + " / ".join(f"{x:.2f}" for x in np.percentile(grad, [5, 50, 95]))
+          + "; within 1 / 2 / 3 sigma_pos: "
+          + " / ".join(f"{100 * np.mean(z_pos <= k):.1f}" for k in (1, 2, 3)) + " %")
     if seen:
         near = np.abs(post.mean) < cfg.tsdf.voxel_size_m
         v0, b2 = seen["var0"][near], seen["b2"][near].astype(np.float64)

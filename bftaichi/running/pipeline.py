@@ -309,7 +309,7 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                 distances[name] = d
                 metrics[name] = metrics_from_distances(d, e.thresholds_mm, len(m.faces))
             if post is not None:
-                uncertainty = vertex_uncertainty(post_mesh, gt_local)
+                uncertainty = vertex_uncertainty(post_mesh, gt_local, e.vertex_sigma)
                 band_unc = band_uncertainty(post, gt, e.near_voxels, e.seed)
     with timer("write"):
         colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None

@@ -2,14 +2,17 @@
 
 The scene (:func:`build_scene`, from the files of an output folder, DESIGN.md section 4):
 
-- ``bftaichi/mesh``: ``mesh.ply`` coloured by its vertex ``sigma_pos`` (colour map ``viridis``
+- ``bftaichi/mesh``: ``mesh.ply`` coloured by its vertex ``sigma`` (colour map ``viridis``
   between the 2nd and 98th percentile, written into the page as a legend in millimetres).
-  ``sigma_pos`` is the std of the surface position along the normal (``sigma / |grad mean|``,
-  DESIGN.md 3.7): the answer to what a user looks at a surface for, "how far off might this
-  surface be", in metres along the normal. ``sigma`` (the std of the SDF value at the vertex)
-  only equals it where the mean has unit slope; where the slope is flatter, the same SDF
-  uncertainty moves the surface further. A ``mesh.ply`` of an older version without
-  ``sigma_pos`` is coloured by ``sigma``, and the legend says which one is shown;
+  ``sigma`` is the posterior std of the SDF at the vertex; the mesh's vertices are where the
+  mean is 0, so a vertex's distance to the true surface is the SDF's error there, and
+  ``sigma`` is what the development suite finds calibrated against those distances.
+  ``sigma_pos`` (``sigma / |grad mean|``, the spread of the zero crossings of the posterior's
+  samples) is not: the mean's gradient at a vertex is noisy (median magnitude 1.1-1.4 on the
+  suite's cases, a tenth of the vertices above 2-5), and dividing by it made the vertices
+  overconfident (``python tools/suite.py --set eval.vertex_sigma=sigma_pos``: within 3 sigma
+  on 0 of 43 cases against 36, docs/measurements.md). A ``mesh.ply`` without ``sigma`` is
+  coloured by ``sigma_pos``, and the legend says which one is shown;
 - ``bftaichi/tsdf_mesh``: the TSDF baseline ``tsdf_mesh.ply`` in grey, hidden at first (tick it
   in the viewer's *Open Controls* > *Scene* tree to show it);
 - ``bftaichi/cameras``: a frustum per input frame (from ``report.json``'s ``frames`` poses);
@@ -160,7 +163,7 @@ def _local_poses(poses, origin) -> np.ndarray:
 def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False) -> dict:
     """Send the scene of a run's outputs in ``out_dir`` to the meshcat visualizer ``vis``;
     return the legend (``sigma_mm``: colour range, or None; ``sigma_name``: the vertex
-    property shown, ``sigma_pos`` or, for an older mesh.ply, ``sigma``) and what was drawn."""
+    property shown, ``sigma`` or, for a mesh.ply without it, ``sigma_pos``) and what was drawn."""
     import meshcat.geometry as g
 
     d = _load_outputs(Path(out_dir))
@@ -169,7 +172,7 @@ def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False)
     scale, centre = 1.0, None
     if d["mesh.ply"] is not None:
         v, f, attrs = d["mesh.ply"]
-        name = next((n for n in ("sigma_pos", "sigma") if n in attrs), None)
+        name = next((n for n in ("sigma", "sigma_pos") if n in attrs), None)
         v, f, sigma = _decimate(v, f, attrs.get(name), max_faces)
         color = None
         if sigma is not None and len(sigma):
@@ -277,7 +280,7 @@ LEGEND = {"sigma_pos": "posterior sigma of the surface position along the normal
           "sigma": "posterior sigma of the SDF at the vertex (mm)"}
 
 
-def _page(commands: list, sigma_mm, title: str, sigma_name: str = "sigma_pos") -> str:
+def _page(commands: list, sigma_mm, title: str, sigma_name: str = "sigma") -> str:
     """The static page of recorded meshcat ``commands`` with the legend of ``sigma_name``
     (:data:`LEGEND`; mm range ``sigma_mm``, or None for no legend)."""
     import os
