@@ -45,7 +45,8 @@ P_VAR_CORR = 37  # per-frame noise shared by a voxel's pixels, metres^2 (see obs
 P_PIXELS = 38  # full-resolution pixels per (super-)pixel of the image observed, k^2 (1: none)
 P_AGGREGATE = 39  # largest super-pixel side, in voxel footprints (0: every pixel on its own)
 P_BEHIND = 40  # 1: the samples behind the surface reach tau max(cos, cos_min) (0: tau)
-N_PARAMS = 41
+P_VAR_AXIAL = 41  # per-pixel depth noise beyond the sensor model, along the ray, metres^2
+N_PARAMS = 42
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -249,8 +250,8 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
             if prm[P_BEHIND] > 0:
                 m_b = ti.cast(ti.cast(m, ti.f64) * ti.max(cos_a, cos_min), ti.i32)
             # y = (z - D) <n, ray>: an axial depth error e moves y by e |<n, ray>|
-            sd = (prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) * ti.max(cos_a, cos_min) \
-                * ti.cast(ray.norm(), ti.f64)
+            sd = ti.sqrt((prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) ** 2 + prm[P_VAR_AXIAL]) \
+                * ti.max(cos_a, cos_min) * ti.cast(ray.norm(), ti.f64)
             # a frame's pixels over one voxel share its pose / calibration error (variance
             # P_VAR_CORR): their mean has variance sd^2 / rho + corr, so each of the rho pixels
             # counts as sd^2 + rho corr (rho: the voxel's footprint in full-resolution pixels)

@@ -44,9 +44,11 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
    silhouette, the cell reaches into the free space beside the object, which the reference
    saw as free.
 4. **Noise**: ``sigma^2 = sigma_depth(D, angle)^2 + sigma_pose^2 + sigma_model^2`` with the
-   Kinect-style axial model divided by the incidence cosine,
-   ``sigma_depth = (a + b (D - z0)^2) / max(cos(angle), cos_min)``, ``cos(angle) = -n . ray /
-   |ray|``. All samples of a pixel share one depth error, so the pixel's information is counted
+   Kinect-style axial model (plus ``sigma_axial``, extra axial noise) carried to ``y`` by the
+   incidence, ``sigma_depth = sqrt((a + b (D - z0)^2)^2 + sigma_axial^2) max(cos(angle),
+   cos_min) |ray|``, ``cos(angle) = -n . ray / |ray|`` (an axial error ``e`` moves ``y`` by ``e
+   |<n, ray>|``; the floor stands for the normal estimate, which degrades as the surface turns
+   away). All samples of a pixel share one depth error, so the pixel's information is counted
    once: each of its ``n_acc`` accepted samples gets ``w = 1 / (n_acc sigma^2)`` (the samples are
    counted first, then accumulated), so ``sum_j w_j = 1 / sigma^2`` per pixel.
 5. **Accumulation**: ``Q += w a a^T``, ``h += w y a``. Entry ``(c, c')`` of ``a a^T`` joins corner
@@ -121,7 +123,7 @@ import taichi as ti
 from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B,
                        P_COS_MIN, MAX_PARTS, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
                        P_K, P_M, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
-                       P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE,
+                       P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE,
                        estimate_normals, finalize_stencil, misfit_frame, observe_frame,
                        observe_rows, superpixels, window_sums)
 from .layout import BLOCK_VOXELS
@@ -171,6 +173,9 @@ class Observer:
         sigma_pose_m: pose noise, metres; also the smallest per-frame value :meth:`integrate`
             accepts (the fixed-point scale is sized for the largest weight).
         sigma_model_m: model noise (planar approximation, discretisation), metres.
+        sigma_axial_m: depth noise beyond ``a + b (D - z0)^2``, independent per pixel, metres:
+            added to it in quadrature before the incidence factor, so it moves ``y`` as the
+            sensor's own noise does (default 0; the fitted extra noise's independent part).
         normal_radius_px: tangent offset r of the normal estimate, pixels (module docstring).
         count_once: how a pixel's shared depth error is counted (no default): ``"pixel"``,
             its samples share one ``1 / sigma^2``; ``"voxel"``, each voxel gets at most one
@@ -205,7 +210,8 @@ class Observer:
                  normal_radius_px: int = 1, normal_max_slope_deg: float = 85.0,
                  count_once: str, front_m: float, gate_m: float,
                  reference: np.ndarray | None = None, sigma_corr_m: float = 0.0,
-                 aggregate: float = 0.0, behind_incidence: bool = False):
+                 aggregate: float = 0.0, behind_incidence: bool = False,
+                 sigma_axial_m: float = 0.0):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
@@ -229,7 +235,8 @@ class Observer:
             if not (math.isfinite(val) and val > 0):
                 raise ValueError(f"Observer: {name} = {val} must be a positive number")
         for name, val in {"depth_a_m": depth_a_m, "depth_b": depth_b,
-                          "sigma_pose_m": sigma_pose_m, "sigma_model_m": sigma_model_m}.items():
+                          "sigma_pose_m": sigma_pose_m, "sigma_model_m": sigma_model_m,
+                          "sigma_axial_m": sigma_axial_m}.items():
             if not (math.isfinite(val) and val >= 0):
                 raise ValueError(f"Observer: {name} = {val} must be >= 0")
         if cos_min > 1:
@@ -254,6 +261,7 @@ class Observer:
         self.depth_model = (float(depth_a_m), float(depth_b), float(depth_z0_m), float(cos_min))
         self.sigma_pose_m = float(sigma_pose_m)
         self.sigma_model_m = float(sigma_model_m)
+        self.sigma_axial_m = float(sigma_axial_m)
         if not (math.isfinite(sigma_corr_m) and sigma_corr_m >= 0):
             raise ValueError(f"Observer: sigma_corr_m = {sigma_corr_m} must be >= 0")
         self.sigma_corr_m = float(sigma_corr_m)
@@ -350,6 +358,7 @@ class Observer:
         prm[P_SPACING] = self.spacing_m
         prm[P_A], prm[P_B], prm[P_Z0], prm[P_COS_MIN] = a, b, z0, cos_min
         prm[P_VAR_EXTRA] = sp ** 2 + self.sigma_model_m ** 2
+        prm[P_VAR_AXIAL] = self.sigma_axial_m ** 2
         prm[P_RADIUS] = self.normal_radius_px
         prm[P_JUMP] = math.tan(math.radians(self.normal_max_slope_deg))
         prm[P_SCALE] = self.fixed_scale

@@ -280,12 +280,15 @@ def test_plane_normals_face_the_camera(box):
         np.testing.assert_allclose(n[v, u], -ray[v, u] / np.linalg.norm(ray[v, u]), atol=1e-6)
 
 
-def test_each_pixel_counts_its_information_once(box):
+@pytest.mark.parametrize("axial", [0.0, 0.004])
+def test_each_pixel_counts_its_information_once(box, axial):
     """(d) Per pixel, the weights of its accepted samples are equal and sum to 1 / sigma^2,
-    sigma^2 = ((a + b (D - z0)^2) max(cos, cos_min) |ray|)^2 + sigma_pose^2 + sigma_model^2 with
-    the true face normal and ray = K^-1 (u, v, 1) (y = (z - D) <n, ray>); summed over the stencil, S holds exactly sum over pixels of 1 / sigma^2."""
+    sigma^2 = (sqrt((a + b (D - z0)^2)^2 + sigma_axial^2) max(cos, cos_min) |ray|)^2 +
+    sigma_pose^2 + sigma_model^2 with the true face normal and ray = K^-1 (u, v, 1) (y = (z - D)
+    <n, ray>): extra depth noise along the ray (``sigma_axial_m``) moves y as the sensor's does;
+    summed over the stencil, S holds exactly sum over pixels of 1 / sigma^2."""
     band, frames = box
-    obs = band.observer()
+    obs = band.observer(sigma_axial_m=axial)
     total_info = 0.0
     for frame in frames:
         face, flat = box_faces(frame)
@@ -302,7 +305,8 @@ def test_each_pixel_counts_its_information_once(box):
         D = frame.depth_m.ravel()[pix].astype(np.float64)
         cos = -(face_normal(face).reshape(-1, 3)[pix] * ray).sum(-1) / np.linalg.norm(ray, axis=-1)
         a, b, z0, cmin = (NOISE[k] for k in ("depth_a_m", "depth_b", "depth_z0_m", "cos_min"))
-        sd = (a + b * (D - z0) ** 2) * np.maximum(cos, cmin) * np.linalg.norm(ray, axis=-1)
+        sd = np.hypot(a + b * (D - z0) ** 2, axial) * np.maximum(cos, cmin) * \
+            np.linalg.norm(ray, axis=-1)
         var = sd ** 2 + NOISE["sigma_pose_m"] ** 2 + NOISE["sigma_model_m"] ** 2
         on_face = flat.ravel()[pix]
         assert on_face.sum() > 100 and (cos[on_face] < cmin).any() and (cos[on_face] > cmin).any()

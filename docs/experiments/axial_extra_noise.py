@@ -1,0 +1,54 @@
+#!/usr/bin/env python
+"""The fitted extra noise as axial depth noise instead of isotropic (issue 15; measured, not
+adopted).
+
+The noise fit (:func:`bftaichi.stages.observe.estimate_extra_noise`) measures the frames' extra
+noise as a residual along the ray on head-on pixels and splits it into a part neighbouring
+pixels share and an independent part. :func:`bftaichi.stages.observe.make_observer` adds the
+independent part to every sample's noise as it is (``sigma_model_m``, isotropic). Were it
+sensor noise, a depth error along the ray, it would move an oblique pixel's ``y`` by only
+``cos(angle)`` of it, as the sensor's own noise does (``sigma_axial_m`` of
+:class:`kernels.observe.Observer`). This runs a script with the independent part passed that
+way::
+
+    python docs/experiments/axial_extra_noise.py tools/suite.py --json axial.json
+    python docs/experiments/axial_extra_noise.py tools/evalviews_table.py --voxels 0.02,0.01 --no-open3d
+
+and ``python tools/suite_diff.py default.json axial.json`` compares it with ``python
+tools/suite.py --json default.json``. Results: docs/measurements.md, "The fitted extra noise
+as axial noise".
+"""
+
+import runpy
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tools"))
+sys.path.insert(0, str(ROOT))
+
+from bftaichi.stages import bandsolve, observe  # noqa: E402
+
+
+_make_observer = observe.make_observer
+
+
+def make_observer(band, obs, voxel_size_m, trunc_m, sigma_extra_m=0.0, sigma_corr_m=0.0):
+    """:func:`bftaichi.stages.observe.make_observer` with the independent part of the extra
+    noise added to the axial noise (``sigma_axial_m``) instead of to ``sigma_model_m``."""
+    corr = min(float(sigma_corr_m), float(sigma_extra_m))
+    independent = float(np.sqrt(max(sigma_extra_m ** 2 - corr ** 2, 0.0)))
+    observer = _make_observer(band, obs, voxel_size_m, trunc_m, corr, corr)  # no independent
+    observer.sigma_axial_m = independent  # read per frame (the fixed-point scale's bound holds)
+    return observer
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 2:
+        sys.exit(__doc__)
+    observe.make_observer = bandsolve.make_observer = make_observer
+    script = sys.argv[1]
+    sys.argv = sys.argv[1:]
+    runpy.run_path(script, run_name="__main__")
