@@ -58,8 +58,10 @@ def _bins(name, err, h) -> str:
             f"{100 * sum(counts[4:]) / len(err):.1f} %")
 
 
-def _normals(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(H, W) |<n, ray>| of each pixel (ray = K^-1 (u, v, 1)); |ray| where no normal forms."""
+def _normals(depth: np.ndarray, K: np.ndarray, vectors: bool = False) -> np.ndarray:
+    """(H, W) |<n, ray>| of each pixel (ray = K^-1 (u, v, 1)); |ray| where no normal forms.
+    ``vectors``: (H, W, 3) the unit normals themselves (camera frame, facing the camera), 0
+    where none forms."""
     H, W = depth.shape
     v, u = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)
@@ -71,6 +73,10 @@ def _normals(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     inner = np.zeros((H, W), bool)
     inner[1:-1, 1:-1] = (ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
                          & ok[1:-1, 1:-1])
+    if vectors:
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+        n = np.where((n * rays).sum(-1, keepdims=True) > 0, -n, n)  # facing the camera
+        return np.where(inner[..., None], n, 0.0)
     cos = np.abs((n * rays).sum(-1)) / np.maximum(np.linalg.norm(n, axis=-1), 1e-30)
     return np.where(inner, cos, np.linalg.norm(rays, axis=-1))
 
@@ -96,12 +102,13 @@ def projective_sdf(X: np.ndarray, frame, T_C: np.ndarray, behind_m: float):
 
 
 def _excess(post, cfg, frames, T: float, power: float, reach: float, signed: bool,
-            scaled: bool) -> np.ndarray:
+            scaled: bool, facing: bool = False) -> np.ndarray:
     h, tb = post.voxel_size, cfg.tsdf.bootstrap_trunc_m
     behind = reach * h if reach > 0 else tb
     X = (post.ijk.astype(np.float64) + 0.5) * h
     N = len(X)
     n, s1, s2, ev, wp, wn = (np.zeros(N) for _ in range(6))
+    nsum, nnear = np.zeros((N, 3)), np.zeros(N)  # facing: camera-facing normals near the surface
     extra2 = post.sigma_extra_m ** 2 + post.sigma_corr_m ** 2
     for f in frames:
         T_C = np.asarray(f.T_W_C, np.float64).copy()
@@ -116,8 +123,17 @@ def _excess(post, cfg, frames, T: float, power: float, reach: float, signed: boo
         ev += np.where(ok, cfg.observation.axial_sigma_m(np.where(ok, d, 1.0)) ** 2 + extra2, 0)
         wp += ok & (y > T * h)
         wn += ok & (y < -T * h)
+        if facing:
+            near = ok & (np.abs(sdf) <= T * h)
+            nw = _normals(f.depth_m, f.K, vectors=True)[vc, uc] @ T_C[:3, :3].T
+            nsum += np.where(near[:, None], nw, 0.0)
+            nnear += near & (np.abs(nw).sum(1) > 0)
     m = np.maximum(n, 1)
     excess = np.where(n >= 2, np.maximum(s2 / m - (s1 / m) ** 2 - ev / m, 0.0), 0.0)
+    if facing:  # 1 - |mean normal|: 0 where every view sees one side, ~1 for two sides
+        conflict = np.where(nnear >= 2, 1 - np.linalg.norm(nsum, axis=1) / np.maximum(nnear, 1),
+                            0.0)
+        return excess * conflict ** power
     conflict = 2 * np.minimum(wp, wn) / np.maximum(wp + wn, 1)
     return excess * conflict ** power if signed else excess
 
@@ -178,6 +194,9 @@ def main(argv=None) -> int:
                     "(default 0: the bootstrap's tau_b)")
     ap.add_argument("--unsigned", action="store_true", help="the spread alone, no conflict")
     ap.add_argument("--no-scale", action="store_true", help="no |<n, ray>| scaling")
+    ap.add_argument("--facing", action="store_true", help="conflict = 1 - the length of the "
+                    "mean camera-facing normal of the pixels seeing the voxel within T voxels "
+                    "(two sides of a sheet), instead of the sign disagreement")
     ap.add_argument("--section", type=Path, help="draw the first case's cross-sections here")
     args = ap.parse_args(argv)
 
@@ -205,7 +224,8 @@ def main(argv=None) -> int:
         print(_bins("posterior mesh", err, h))
         print(_bins("TSDF mesh", vertex_errors(tsdf_mesh.vertices, gt), h))
         interp, top = _at_vertices(post, _excess(post, cfg, frames, args.T, args.pow, args.reach,
-                                           not args.unsigned, not args.no_scale),
+                                           not args.unsigned, not args.no_scale,
+                                           args.facing),
                                    mesh.vertices)
         print(_line("sigma", err, sigma))
         print(_line("+ excess, interpolated", err, np.sqrt(sigma ** 2 + interp)))
