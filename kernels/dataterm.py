@@ -1,9 +1,8 @@
 """Taichi kernels of the data term: depth frames -> SDF samples -> the 27-point stencil.
 
 The math (normals, samples, rows, side gate, noise, accumulation, fixed point) is in the
-docstring of :mod:`kernels.observe`, whose :class:`~kernels.observe.Observer` is the Python
-front of these kernels: it checks the inputs and fills the per-frame parameter vector
-(``P_*`` slots below).
+docstring of :mod:`kernels.observe`, whose :class:`~kernels.observe.Observer` is the Python front
+of these kernels: it checks the inputs and fills the per-frame parameters (``P_*`` below).
 
 Determinism: :func:`observe_frame` and :func:`misfit_frame` add integers, each thread into its
 own copy of the accumulators (``parts``, summed when read), without atomics: the sums are
@@ -207,10 +206,10 @@ def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot
 
 @ti.func
 def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.template(),
-                 block_keys: ti.template(),
-                 block_table: ti.template(), ref: ti.template(), stride: ti.i32, m: ti.i32,
-                 mf: ti.i32, counts: ti.template(), scratch: ti.template(), blocks: ti.template(),
-                 sink: ti.template(), mode: ti.template(), part: ti.i32):
+                 block_keys: ti.template(), block_table: ti.template(), ref: ti.template(),
+                 stride: ti.i32, m: ti.i32, mf: ti.i32, counts: ti.template(),
+                 scratch: ti.template(), blocks: ti.template(), sink: ti.template(),
+                 mode: ti.template(), part: ti.i32):
     """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5) at the pixels where
     ``mask`` is 1 (``depth``: the frame or one level of its super-pixel pyramid, ``prm`` that
     level's parameters): each pixel counts its accepted samples, then adds them to ``sink =

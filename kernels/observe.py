@@ -43,14 +43,12 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
    drops the samples whose cell straddles an occlusion edge: behind a foreground pixel at the
    silhouette, the cell reaches into the free space beside the object, which the reference
    saw as free.
-4. **Noise**: ``sigma^2 = sigma_depth(D, angle)^2 + sigma_pose^2 + sigma_model^2`` with the
-   Kinect-style axial model (plus ``sigma_axial``, extra axial noise) carried to ``y`` by the
-   incidence, ``sigma_depth = sqrt((a + b (D - z0)^2)^2 + sigma_axial^2) max(cos(angle),
-   cos_min) |ray|``, ``cos(angle) = -n . ray / |ray|`` (an axial error ``e`` moves ``y`` by ``e
-   |<n, ray>|``; the floor stands for the normal estimate, which degrades as the surface turns
-   away). All samples of a pixel share one depth error, so the pixel's information is counted
-   once: each of its ``n_acc`` accepted samples gets ``w = 1 / (n_acc sigma^2)`` (the samples are
-   counted first, then accumulated), so ``sum_j w_j = 1 / sigma^2`` per pixel.
+4. **Noise**: ``sigma^2 = sigma_depth^2 + sigma_pose^2 + sigma_model^2``, the axial noise (and
+   ``sigma_axial``) carried to ``y``: ``sigma_depth = sqrt((a + b (D - z0)^2)^2 + sigma_axial^2)
+   max(cos(angle), cos_min) |ray|``, ``cos(angle) = -n . ray / |ray|`` (the floor stands for the
+   normal estimate). All samples of a pixel share one depth error, so the pixel's information is
+   counted once: each of its ``n_acc`` accepted samples gets ``w = 1 / (n_acc sigma^2)`` (the
+   samples are counted first, then accumulated), so ``sum_j w_j = 1 / sigma^2`` per pixel.
 5. **Accumulation**: ``Q += w a a^T``, ``h += w y a``. Entry ``(c, c')`` of ``a a^T`` joins corner
    voxels whose offset ``corner(c') - corner(c)`` is in ``{-1, 0, 1}^3``, i.e. stencil offset
    ``o = (di+1) 9 + (dj+1) 3 + (dk+1)`` of the row of corner ``c``. Only the upper half
@@ -123,9 +121,9 @@ import taichi as ti
 from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B,
                        P_COS_MIN, MAX_PARTS, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
                        P_K, P_M, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
-                       P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE,
-                       estimate_normals, finalize_stencil, misfit_frame, observe_frame,
-                       observe_rows, superpixels, window_sums)
+                       P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED,
+                       MISFIT_SCALE, estimate_normals, finalize_stencil, misfit_frame,
+                       observe_frame, observe_rows, superpixels, window_sums)
 from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table
 from .stencil import free_compile_arguments, zeros_aligned
@@ -168,14 +166,12 @@ class Observer:
         spacing_m: sample spacing along the camera z axis, metres (default one voxel).
         depth_a_m, depth_b, depth_z0_m: axial depth noise ``a + b (D - z0)^2`` (metres,
             1/metre, metres); the defaults are the Kinect v1 fit of Nguyen et al. 2012.
-        cos_min: floor of the incidence cosine dividing the axial noise (0.3: at most 3.3x the
-            head-on noise, reached at 72.5 deg).
+        cos_min: floor of the incidence cosine multiplying the axial noise (step 4).
         sigma_pose_m: pose noise, metres; also the smallest per-frame value :meth:`integrate`
             accepts (the fixed-point scale is sized for the largest weight).
         sigma_model_m: model noise (planar approximation, discretisation), metres.
-        sigma_axial_m: depth noise beyond ``a + b (D - z0)^2``, independent per pixel, metres:
-            added to it in quadrature before the incidence factor, so it moves ``y`` as the
-            sensor's own noise does (default 0; the fitted extra noise's independent part).
+        sigma_axial_m: extra axial depth noise per pixel, metres, added to ``a + b (D - z0)^2``
+            in quadrature (step 4; docs/experiments/axial_extra_noise.py; default 0).
         normal_radius_px: tangent offset r of the normal estimate, pixels (module docstring).
         count_once: how a pixel's shared depth error is counted (no default): ``"pixel"``,
             its samples share one ``1 / sigma^2``; ``"voxel"``, each voxel gets at most one
@@ -234,9 +230,8 @@ class Observer:
         for name, val in values.items():
             if not (math.isfinite(val) and val > 0):
                 raise ValueError(f"Observer: {name} = {val} must be a positive number")
-        for name, val in {"depth_a_m": depth_a_m, "depth_b": depth_b,
-                          "sigma_pose_m": sigma_pose_m, "sigma_model_m": sigma_model_m,
-                          "sigma_axial_m": sigma_axial_m}.items():
+        for name, val in {"depth_a_m": depth_a_m, "depth_b": depth_b, "sigma_pose_m": sigma_pose_m,
+                          "sigma_model_m": sigma_model_m, "sigma_axial_m": sigma_axial_m}.items():
             if not (math.isfinite(val) and val >= 0):
                 raise ValueError(f"Observer: {name} = {val} must be >= 0")
         if cos_min > 1:

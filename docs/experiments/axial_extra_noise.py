@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The fitted extra noise as axial depth noise instead of isotropic (issue 15; measured, not
+r"""The fitted extra noise as axial depth noise instead of isotropic (issue 15; measured, not
 adopted).
 
 The noise fit (:func:`bftaichi.stages.observe.estimate_extra_noise`) measures the frames' extra
@@ -12,7 +12,8 @@ sensor noise, a depth error along the ray, it would move an oblique pixel's ``y`
 way::
 
     python docs/experiments/axial_extra_noise.py tools/suite.py --json axial.json
-    python docs/experiments/axial_extra_noise.py tools/evalviews_table.py --voxels 0.02,0.01 --no-open3d
+    python docs/experiments/axial_extra_noise.py tools/evalviews_table.py \
+        --voxels 0.02,0.01 --no-open3d
 
 and ``python tools/suite_diff.py default.json axial.json`` compares it with ``python
 tools/suite.py --json default.json``. Results: docs/measurements.md, "The fitted extra noise
