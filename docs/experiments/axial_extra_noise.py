@@ -19,7 +19,11 @@ and ``python tools/suite_diff.py default.json axial.json`` compares it with ``py
 tools/suite.py --json default.json``. Environment: ``RADIUS=R`` also estimates each pixel's
 normal from the pixels ``R`` away instead of 1 (``normal_radius_px`` of the Observer: a
 longer baseline, a normal less disturbed by the depth noise); ``AXIAL=0`` keeps the extra noise
-isotropic. Results: docs/measurements.md, "The fitted extra noise as axial noise".
+isotropic. ``RADIUS=auto`` picks ``r`` per frame: the smallest ``r`` (at most 4) whose normal
+angle noise ``sigma / (sqrt(2) r D / f)`` is at most ``THETA`` radians (default 0.6), ``D`` the
+frame's median valid depth, ``sigma`` the depth noise a pixel has alone (the sensor model and
+the fit's independent part, in quadrature). Results: docs/measurements.md, "The fitted extra
+noise as axial noise".
 """
 
 import os
@@ -49,13 +53,37 @@ def make_observer(band, obs, voxel_size_m, trunc_m, sigma_extra_m=0.0, sigma_cor
         observer.sigma_axial_m = independent  # read per frame (the fixed-point scale's bound holds)
     else:
         observer = _make_observer(band, obs, voxel_size_m, trunc_m, sigma_extra_m, sigma_corr_m)
-    observer.normal_radius_px = int(os.environ.get("RADIUS", "1"))  # read per frame too
+    radius = os.environ.get("RADIUS", "1")
+    if radius != "auto":
+        observer.normal_radius_px = int(radius)  # read per frame too
+    else:
+        observer._independent = independent
     return observer
+
+
+def _frame_params(self, depth_m, K, T_W_C, sigma_pose_m):
+    """``RADIUS=auto``: the frame's normal radius from its noise, then the parameters."""
+    e = getattr(self, "_independent", None)
+    if e is not None:
+        d = np.asarray(depth_m)[::4, ::4]
+        d = d[d > 0]
+        if len(d):
+            D = float(np.median(d))
+            a, b, z0, _ = self.depth_model
+            theta1 = np.hypot(a + b * (D - z0) ** 2, e) * float(np.asarray(K)[0][0]) / \
+                (np.sqrt(2.0) * D)
+            self.normal_radius_px = int(np.clip(np.ceil(theta1 / THETA), 1, 4))
+    return _frame_params_base(self, depth_m, K, T_W_C, sigma_pose_m)
 
 
 if __name__ == "__main__":
     if len(sys.argv) < 2:
         sys.exit(__doc__)
+    from kernels.observe import Observer
+
+    THETA = float(os.environ.get("THETA", "0.6"))
+    _frame_params_base = Observer._frame_params
+    Observer._frame_params = _frame_params
     observe.make_observer = bandsolve.make_observer = make_observer
     script = sys.argv[1]
     sys.argv = sys.argv[1:]
