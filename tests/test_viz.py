@@ -60,9 +60,9 @@ def test_run_writes_a_self_contained_preview(tiny_run):
     lo, hi = float(m.group(1)), float(m.group(2))
     assert 0 < lo < hi < 100  # a sigma range in millimetres
     # the colours are the vertex sigma's (the calibrated property), not sigma_pos's
-    from plyfile import PlyData
+    from bftaichi.io import read_mesh_ply
 
-    sigma = np.asarray(PlyData.read(str(tiny_run / "mesh.ply"))["vertex"]["sigma"])
+    sigma = read_mesh_ply(tiny_run / "mesh.ply")[2]["sigma"]
     np.testing.assert_allclose([lo, hi], 1000 * np.percentile(sigma, [2, 98]), rtol=5e-3)
 
 

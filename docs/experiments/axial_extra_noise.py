@@ -41,6 +41,7 @@ from bftaichi.stages import bandsolve, observe  # noqa: E402
 
 
 _make_observer = observe.make_observer
+THETA = float(os.environ.get("THETA", "0.6"))  # RADIUS=auto: largest normal angle noise, rad
 
 
 def make_observer(band, obs, voxel_size_m, trunc_m, sigma_extra_m=0.0, sigma_corr_m=0.0):
@@ -81,7 +82,6 @@ if __name__ == "__main__":
         sys.exit(__doc__)
     from kernels.observe import Observer
 
-    THETA = float(os.environ.get("THETA", "0.6"))
     _frame_params_base = Observer._frame_params
     Observer._frame_params = _frame_params
     observe.make_observer = bandsolve.make_observer = make_observer
