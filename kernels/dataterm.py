@@ -1,13 +1,11 @@
 """Taichi kernels of the data term: depth frames -> SDF samples -> the 27-point stencil.
 
-The math (normals, samples, rows, side gate, noise, accumulation, fixed point) is in the
-docstring of :mod:`kernels.observe`, whose :class:`~kernels.observe.Observer` is the Python front
-of these kernels: it checks the inputs and fills the per-frame parameters (``P_*`` below).
-
+The math is in the docstring of :mod:`kernels.observe`, whose Observer is the Python front of
+these kernels: it checks the inputs and fills the per-frame parameters (``P_*`` below).
 Determinism: :func:`observe_frame` and :func:`misfit_frame` add integers, each thread into its
-own copy of the accumulators (``parts``, summed when read), without atomics: the sums are
-bitwise reproducible whatever the thread schedule; every other kernel writes each output
-element from one thread.
+own copy of the accumulators (``parts``, summed when read), without atomics: bitwise
+reproducible whatever the thread schedule; every other kernel writes each output element from
+one thread.
 """
 
 import taichi as ti
@@ -34,7 +32,7 @@ P_B = 27  # depth model b, 1/metre
 P_Z0 = 28  # depth model z0, metres
 P_COS_MIN = 29  # floor of the incidence cosine
 P_VAR_EXTRA = 30  # sigma_pose^2 + sigma_model^2, metres^2
-P_RADIUS = 31  # normal tangent offset r, pixels
+P_RADIUS = 31  # normal tangent offset r, pixels (with P_NORMAL_NOISE: its largest value)
 P_JUMP = 32  # tan(normal_max_slope): neighbour depth jump limit is r D tan / f
 P_SCALE = 33  # fixed-point units per unit of S / h
 P_SHARE = 34  # most samples of one pixel that share a depth error in one voxel's estimate
@@ -45,7 +43,8 @@ P_PIXELS = 38  # full-resolution pixels per (super-)pixel of the image observed,
 P_AGGREGATE = 39  # largest super-pixel side, in voxel footprints (0: every pixel on its own)
 P_BEHIND = 40  # 1: the samples behind the surface reach tau max(cos, cos_min) (0: tau)
 P_VAR_AXIAL = 41  # per-pixel depth noise beyond the sensor model, along the ray, metres^2
-N_PARAMS = 42
+P_NORMAL_NOISE = 42  # > 0: r per pixel, the smallest with normal angle noise <= this, radians
+N_PARAMS = 43
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -59,7 +58,6 @@ N_COUNTS = 7
 COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropped", "saturated",
                "normal_fallbacks", "samples_gated")
 
-# Row status in frame_rows (0: no sample, or gated):
 MODE_ACCUMULATE, MODE_ROWS, MODE_MISFIT, MODE_DIAGONAL = 0, 1, 2, 3  # what observe_row does
 #: Fixed-point units per unit of a misfit sum (pixel shares and squared residuals in voxel^2).
 MISFIT_SCALE = float(1 << 24)
@@ -69,15 +67,13 @@ MISFIT_SCALE = float(1 << 24)
 MISFIT_CAP = 100.0
 #: The misfit counts the samples within this many voxels of their pixel's measured surface
 #: (``|y| < MISFIT_NEAR h``): those in the cells that hold the zero crossing, where a vertex
-#: lies (such a cell reaches 1 voxel from the crossing along an axis, up to sqrt(3) along a
-#: diagonal normal; 1.5 counts most of them: 1, 1.5 and 2 measured on the development suite,
-#: docs/measurements.md). Farther samples carry the model error of the projective distance and
-#: of the pixel normal (on the suite's cheburashka/dropout their residual against the true SDF
-#: is 1.4-2.9 mm RMS, against 1.2 mm at the surface: tools/residual_profile.py), which does not
-#: move the zero crossing; counted, it made sigma ~2x too large on smooth surfaces.
+#: lies (1 voxel from it along an axis, sqrt(3) along a diagonal; 1, 1.5 and 2 measured on the
+#: suite, docs/measurements.md). Farther samples carry the model error of the projective
+#: distance and the pixel normal (tools/residual_profile.py: 1.4-2.9 mm RMS on cheburashka /
+#: dropout, 1.2 at the surface), which does not move the zero crossing; counted, it made sigma
+#: ~2x too large on smooth surfaces.
 MISFIT_NEAR = 1.5
-ROW_ACCEPTED = 1
-ROW_DROPPED = 2
+ROW_ACCEPTED, ROW_DROPPED = 1, 2  # row status in frame_rows (0: no sample, or gated)
 
 
 def column(ca: int, cb: int) -> int:
@@ -102,8 +98,12 @@ def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32)
     """Camera-frame unit normal of valid pixel (u, v) facing the camera, and a fallback flag:
     ``(nx, ny, nz, fallback)`` float32 (module docstring, step 1)."""
     H, W = depth.shape[0], depth.shape[1]
-    r = ti.cast(prm[P_RADIUS], ti.i32)
     d = depth[v, u]
+    r = ti.cast(prm[P_RADIUS], ti.i32)
+    if prm[P_NORMAL_NOISE] > 0:  # the depth noise sd over the baseline sqrt(2) r d / fx
+        sd = ti.sqrt((prm[P_A] + prm[P_B] * (d - prm[P_Z0]) ** 2) ** 2 + prm[P_VAR_AXIAL])
+        noise = sd * prm[P_K] / (ti.sqrt(2.0) * ti.cast(d, ti.f64))
+        r = ti.min(ti.max(ti.cast(ti.ceil(noise / prm[P_NORMAL_NOISE]), ti.i32), 1), r)
     reach = ti.cast(prm[P_JUMP], ti.f32) * d * ti.cast(r, ti.f32)
     jump_u = reach / ti.cast(prm[P_K], ti.f32)  # r D tan(max slope) / fx
     jump_v = reach / ti.cast(prm[P_K + 1], ti.f32)

@@ -13,7 +13,9 @@ For every frame and every ``stride``-th valid pixel ``(u, v)`` with depth ``D`` 
    axis has no usable neighbour, or the tangents are parallel, ``n = -ray / |ray|`` (the
    *fallback*: the pixel is treated as seen head-on). The default slope limit, 85 deg, keeps
    grazing but real surfaces (their samples get little weight anyway, step 4) and does not
-   depend on the image resolution.
+   depend on the image resolution. With ``normal_max_noise_rad`` a pixel takes the smallest
+   ``r <= normal_radius_px`` whose normal angle noise ``sigma fx / (sqrt(2) r D)`` is at most it
+   (``sigma``: its axial noise of step 4 without the incidence factor; docs/measurements.md).
 2. **Samples** at camera depths ``z_j = D + j * spacing``, ``j = -m..m``,
    ``m = floor(tau / spacing)``, on the pixel ray (``z_j <= 0`` is skipped; it cannot happen for
    ``D > tau``). The sample point is ``x_j = t_WC + z_j R_WC K^-1 (u, v, 1)`` (world, metres), its
@@ -94,22 +96,17 @@ Layout of the accumulators: ``S_acc`` (parts, N, 14) int64, column ``o - 13`` fo
 
 Cost (one launch per pyramid level, each thread taking every parts-th pixel row): per pixel a
 normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 adds (the upper
-half of ``a a^T`` and ``a y``). Measured on redkitchen frames at 2 cm (tools/bench_pipeline.py
-has the current figures): int64 atomics cost ~20 cycles each, so the per-thread copies took
-the pass from ~520 to ~150 ns per sample at stride 1 (the row loop had also been running on
-one thread: Taichi's CPU backend gives loops of fewer than 512 iterations to one thread), and
-super-pixels cut the samples ~12x (a super-pixel sample costs ~2x a pixel's: its neighbours'
-cells are not in the cache). Measured and not kept: a dense block grid instead of the binary
-search over block keys behind the per-row block cache (no gain beyond the noise). The
-figures below are from before these changes. The lookup reads the block table through a per-row cache of the 8
-blocks around sample j's block (one cache per sample index j: sample j of the next pixels of a
-row stays in the same blocks for many pixels), so binary searches are rare. Measured on a
-sphere band of 200k voxels (1 cm voxels, tau = 2 voxels: 5 samples per pixel), 640x480 frames
-with 185k valid pixels, one thread of a 2-core EPYC: ~70 ns per sample for normals and lookups
-and ~130 ns for the adds (~200 ms per frame at stride 1, ~55 ms at stride 2); the two threads
-share it with little loss. Measured and not kept: summing the samples that fall into a row's
-previous cell before the atomics (-10 % at stride 1, slower at stride 2, 3x the compile time),
-an unrolled corner loop (no gain).
+half of ``a a^T`` and ``a y``). The lookup reads the block table through a per-row cache of the
+8 blocks around sample j's block (one cache per sample index j: sample j of the next pixels of
+a row stays in the same blocks for many pixels), so binary searches are rare. Measured on
+redkitchen frames at 2 cm (tools/bench_pipeline.py has the current figures): int64 atomics cost
+~20 cycles each, so the per-thread copies took the pass from ~520 to ~150 ns per sample at
+stride 1 (the row loop had run on one thread: Taichi's CPU backend gives loops of fewer than
+512 iterations to one thread), and super-pixels cut the samples ~12x (a super-pixel sample
+costs ~2x a pixel's: its neighbours' cells are not in the cache). Measured and not kept: a
+dense block grid instead of the binary search (no gain beyond the noise), summing the samples
+that fall into a row's previous cell before the adds (-10 % at stride 1, slower at stride 2,
+3x the compile time), an unrolled corner loop (no gain).
 """
 
 import math
@@ -120,8 +117,9 @@ import taichi as ti
 
 from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B,
                        P_COS_MIN, MAX_PARTS, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
-                       P_K, P_M, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
-                       P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED,
+                       P_K, P_M, P_NORMAL_NOISE, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE,
+                       P_SHARE, P_SPACING, P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
+                       ROW_ACCEPTED, ROW_DROPPED,
                        MISFIT_SCALE, estimate_normals, finalize_stencil, misfit_frame,
                        observe_frame, observe_rows, superpixels, window_sums)
 from .layout import BLOCK_VOXELS
@@ -172,7 +170,8 @@ class Observer:
         sigma_model_m: model noise (planar approximation, discretisation), metres.
         sigma_axial_m: extra axial depth noise per pixel, metres, added to ``a + b (D - z0)^2``
             in quadrature (step 4; docs/experiments/axial_extra_noise.py; default 0).
-        normal_radius_px: tangent offset r of the normal estimate, pixels (module docstring).
+        normal_radius_px: tangent offset r of the normal estimate, pixels (module docstring);
+            with ``normal_max_noise_rad`` > 0 (radians; default 0) the largest, r per pixel.
         count_once: how a pixel's shared depth error is counted (no default): ``"pixel"``,
             its samples share one ``1 / sigma^2``; ``"voxel"``, each voxel gets at most one
             pixel's information (see the constructor's comment).
@@ -207,7 +206,7 @@ class Observer:
                  count_once: str, front_m: float, gate_m: float,
                  reference: np.ndarray | None = None, sigma_corr_m: float = 0.0,
                  aggregate: float = 0.0, behind_incidence: bool = False,
-                 sigma_axial_m: float = 0.0):
+                 sigma_axial_m: float = 0.0, normal_max_noise_rad: float = 0.0):
         self.voxel_size = float(voxel_size)
         self.trunc_m = float(trunc_m)
         self.spacing_m = self.voxel_size if spacing_m is None else float(spacing_m)
@@ -215,12 +214,10 @@ class Observer:
             raise ValueError(f"Observer: count_once = {count_once!r} is not 'pixel' or 'voxel'")
         # "pixel": the n_acc samples of a pixel share its 1/sigma^2 (w = 1 / (n_acc sigma^2)).
         # "voxel": each voxel gets at most one pixel's information. The trilinear weights a
-        # ray's samples put on one voxel sum to at most about voxel / spacing (the hat function
-        # integrated along a line: 1 on an axis, 0.87 on a diagonal), so with
-        # w = 1 / (min(n_acc, share) sigma^2), share = ceil(voxel / spacing), a voxel's share
-        # of the pixel, sum_k w a_k^2 <= sum_k w a_k, is at most about 1 / sigma^2. (Dividing by the
-        # two samples that reach a voxel, as before, counted each pixel half in every voxel:
-        # the vertex sigma was ~1.5x its errors on smooth surfaces; docs/measurements.md.)
+        # ray's samples put on one voxel sum to at most about voxel / spacing (1 on an axis,
+        # 0.87 on a diagonal), so with w = 1 / (min(n_acc, share) sigma^2), share =
+        # ceil(voxel / spacing), a voxel's share of the pixel, sum_k w a_k^2 <= sum_k w a_k,
+        # is at most about 1 / sigma^2 (docs/measurements.md).
         self.count_once = count_once
         self.share = (float(math.ceil(self.voxel_size / self.spacing_m - 1e-9))
                       if count_once == "voxel" else 1e30)
@@ -231,7 +228,8 @@ class Observer:
             if not (math.isfinite(val) and val > 0):
                 raise ValueError(f"Observer: {name} = {val} must be a positive number")
         for name, val in {"depth_a_m": depth_a_m, "depth_b": depth_b, "sigma_pose_m": sigma_pose_m,
-                          "sigma_model_m": sigma_model_m, "sigma_axial_m": sigma_axial_m}.items():
+                          "sigma_model_m": sigma_model_m, "sigma_axial_m": sigma_axial_m,
+                          "normal_max_noise_rad": normal_max_noise_rad}.items():
             if not (math.isfinite(val) and val >= 0):
                 raise ValueError(f"Observer: {name} = {val} must be >= 0")
         if cos_min > 1:
@@ -264,6 +262,7 @@ class Observer:
             raise ValueError(f"Observer: aggregate = {aggregate} must be >= 0 (0: off)")
         self.aggregate = float(aggregate)
         self.normal_radius_px = int(normal_radius_px)
+        self.normal_max_noise_rad = float(normal_max_noise_rad)
         self.normal_max_slope_deg = float(normal_max_slope_deg)
         self.m = sample_count(self.trunc_m, self.spacing_m) // 2
         # samples in front of the surface reach front_m (trunc_m: as far as those behind)
@@ -355,6 +354,7 @@ class Observer:
         prm[P_VAR_EXTRA] = sp ** 2 + self.sigma_model_m ** 2
         prm[P_VAR_AXIAL] = self.sigma_axial_m ** 2
         prm[P_RADIUS] = self.normal_radius_px
+        prm[P_NORMAL_NOISE] = self.normal_max_noise_rad
         prm[P_JUMP] = math.tan(math.radians(self.normal_max_slope_deg))
         prm[P_SCALE] = self.fixed_scale
         prm[P_SHARE] = self.share

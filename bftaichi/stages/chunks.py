@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .observe import NORMAL_RADIUS_MAX_PX
+
 __all__ = ["Chunk", "ChunkJob", "ChunkPlan", "chunk_plan", "merge_stats", "ray_chunks",
            "solve_chunks"]
 
@@ -59,12 +61,13 @@ class Chunk:
         return (np.asarray(posterior.ijk[m]), np.asarray(posterior.mean[m])) if m.any() else None
 
 
-MASK_MARGIN_PX = 16 * (1 + 2)
+MASK_MARGIN_PX = 16 * (NORMAL_RADIUS_MAX_PX + 2)
 """Pixels kept around the image of a chunk's box: what a pixel or super-pixel that can reach
 the box reads around itself. A super-pixel is at most 2^MAX_LEVEL = 16 pixels a side
-(kernels/observe.py), its normal reads the blocks ``normal_radius_px`` = 1 away, and its ray
-leaves from its centre; so every block whose samples can land in the box, and every pixel it
-reads, lies within 16 (1 + 2) pixels of the box's image."""
+(kernels/observe.py), its normal reads the blocks up to ``NORMAL_RADIUS_MAX_PX`` away
+(:mod:`.observe`; each pixel's own radius depends only on its own depth), and its ray leaves
+from its centre; so every block whose samples can land in the box, and every pixel it reads,
+lies within 16 (NORMAL_RADIUS_MAX_PX + 2) pixels of the box's image."""
 
 
 def chunk_views(frames, plan, voxel_size_m: float,

@@ -176,14 +176,29 @@ class ObservationConfig:
                               "so a sample would have zero variance (infinite weight)")
 
 
+#: The normal of a pixel reads its neighbours up to this many pixels away (kernels/observe.py,
+#: step 1): the longest baseline a noisy pixel's normal takes.
+NORMAL_RADIUS_MAX_PX = 4
+#: Largest normal angle noise, radians: each pixel takes the shortest baseline ``r`` (pixels,
+#: at most NORMAL_RADIUS_MAX_PX) over which its depth noise ``sigma`` tilts the normal by at most
+#: this much, ``sigma fx / (sqrt(2) r D) <= 0.6`` (about 34 degrees; the 1-pixel baseline of the
+#: Kinect's 1.9 mm at 1 m already tilts it by 0.8 rad). A longer baseline than needed smooths
+#: creases; a shorter one gives normals that are mostly noise, so the samples in front of and
+#: behind the surface land off the ray's true distance (docs/measurements.md, "The rule,
+#: measured").
+NORMAL_MAX_NOISE_RAD = 0.6
+
+
 def make_observer(band, obs: ObservationConfig, voxel_size_m: float, trunc_m: float,
                   sigma_extra_m: float = 0.0, sigma_corr_m: float = 0.0):
     """The :class:`kernels.observe.Observer` of ``band`` (a :class:`~.band.Band`) with the
     observation model ``obs``, the observation truncation ``trunc_m`` (tau, metres) and the
     fitted extra noise ``sigma_extra_m`` (metres), of which ``sigma_corr_m`` is shared by a
     frame's pixels over a voxel (``sigma_corr_m`` of the Observer) and the rest is independent
-    per pixel (added to ``sigma_model_m`` in quadrature). The side gate tests against the
-    band's bootstrap TSDF (:attr:`Band.reference`)."""
+    per pixel: a depth error along the ray like the sensor's own (``sigma_axial_m``, carried to
+    ``y`` by the incidence cosine; the fit measures it along the ray). The side gate tests
+    against the band's bootstrap TSDF (:attr:`Band.reference`); each pixel's normal baseline
+    follows its noise (:data:`NORMAL_MAX_NOISE_RAD`)."""
     from kernels.observe import Observer
     from kernels.voxelobs import VoxelObserver
 
@@ -193,11 +208,12 @@ def make_observer(band, obs: ObservationConfig, voxel_size_m: float, trunc_m: fl
     return cls(band.block_keys, band.block_table, len(band), voxel_size_m, trunc_m,
                spacing_m=obs.spacing_voxels * voxel_size_m, depth_a_m=obs.depth_a_m,
                depth_b=obs.depth_b, depth_z0_m=obs.depth_z0_m, cos_min=obs.cos_min,
-               sigma_pose_m=obs.sigma_pose_m,
-               sigma_model_m=float(np.hypot(obs.sigma_model_m, independent)),
-               sigma_corr_m=corr, count_once=obs.count_once, front_m=obs.front * trunc_m,
-               reference=band.reference, gate_m=obs.gate * trunc_m,
-               aggregate=obs.aggregate, behind_incidence=obs.behind == "incidence")
+               sigma_pose_m=obs.sigma_pose_m, sigma_model_m=obs.sigma_model_m,
+               sigma_axial_m=independent, sigma_corr_m=corr, count_once=obs.count_once,
+               front_m=obs.front * trunc_m, reference=band.reference,
+               gate_m=obs.gate * trunc_m, aggregate=obs.aggregate,
+               behind_incidence=obs.behind == "incidence",
+               normal_radius_px=NORMAL_RADIUS_MAX_PX, normal_max_noise_rad=NORMAL_MAX_NOISE_RAD)
 
 
 def free_space_rows(band, trunc_m: float) -> np.ndarray:
