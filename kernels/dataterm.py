@@ -44,7 +44,8 @@ P_AGGREGATE = 39  # largest super-pixel side, in voxel footprints (0: every pixe
 P_BEHIND = 40  # 1: the samples behind the surface reach tau max(cos, cos_min) (0: tau)
 P_VAR_AXIAL = 41  # per-pixel depth noise beyond the sensor model, along the ray, metres^2
 P_NORMAL_NOISE = 42  # > 0: r per pixel, the smallest with normal angle noise <= this, radians
-N_PARAMS = 43
+P_SLOPE = 43  # experiment (docs/experiments/normal_slope_noise.py; 0: off): see observe_row
+N_PARAMS = 44
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -59,11 +60,9 @@ COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropp
                "normal_fallbacks", "samples_gated")
 
 MODE_ACCUMULATE, MODE_ROWS, MODE_MISFIT, MODE_DIAGONAL = 0, 1, 2, 3  # what observe_row does
-#: Fixed-point units per unit of a misfit sum (pixel shares and squared residuals in voxel^2).
-MISFIT_SCALE = float(1 << 24)
-#: Largest squared residual one sample adds to the misfit, in units of its noise variance (a
-#: 10-sigma residual): one gross residual (an occlusion edge) marks its voxels as misfit
-#: without swamping their neighbours' sums.
+MISFIT_SCALE = float(1 << 24)  # fixed-point units per unit of a misfit sum (shares, voxel^2)
+#: Largest squared residual one sample adds to the misfit, in units of its noise variance (10
+#: sigma): a gross residual (an occlusion edge) marks its voxels without swamping their sums.
 MISFIT_CAP = 100.0
 #: The misfit counts the samples within this many voxels of their pixel's measured surface
 #: (``|y| < MISFIT_NEAR h``): those in the cells that hold the zero crossing, where a vertex
@@ -95,14 +94,15 @@ def ray_C(prm: ti.template(), u: ti.i32, v: ti.i32):
 
 @ti.func
 def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32):
-    """Camera-frame unit normal of valid pixel (u, v) facing the camera, and a fallback flag:
-    ``(nx, ny, nz, fallback)`` float32 (module docstring, step 1)."""
+    """Camera-frame unit normal of valid pixel (u, v) facing the camera, a fallback flag and its
+    angle noise: ``(nx, ny, nz, fallback, eps)`` float32 (module docstring, step 1)."""
     H, W = depth.shape[0], depth.shape[1]
     d = depth[v, u]
     r = ti.cast(prm[P_RADIUS], ti.i32)
-    if prm[P_NORMAL_NOISE] > 0:  # the depth noise sd over the baseline sqrt(2) r d / fx
-        sd = ti.sqrt((prm[P_A] + prm[P_B] * (d - prm[P_Z0]) ** 2) ** 2 + prm[P_VAR_AXIAL])
-        noise = sd * prm[P_K] / (ti.sqrt(2.0) * ti.cast(d, ti.f64))
+    # the normal's angle noise at r = 1: the depth noise sd over the baseline sqrt(2) d / fx
+    sd = ti.sqrt((prm[P_A] + prm[P_B] * (d - prm[P_Z0]) ** 2) ** 2 + prm[P_VAR_AXIAL])
+    noise = sd * prm[P_K] / (ti.sqrt(2.0) * ti.cast(d, ti.f64))
+    if prm[P_NORMAL_NOISE] > 0:
         r = ti.min(ti.max(ti.cast(ti.ceil(noise / prm[P_NORMAL_NOISE]), ti.i32), 1), r)
     reach = ti.cast(prm[P_JUMP], ti.f32) * d * ti.cast(r, ti.f32)
     jump_u = reach / ti.cast(prm[P_K], ti.f32)  # r D tan(max slope) / fx
@@ -144,7 +144,7 @@ def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32)
         fallback = 0.0
     else:
         n = -ray / ray.norm()
-    return ti.Vector([n[0], n[1], n[2], fallback])
+    return ti.Vector([n[0], n[1], n[2], fallback, ti.cast(noise, ti.f32) / ti.cast(r, ti.f32)])
 
 
 @ti.func
@@ -210,16 +210,14 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                  stride: ti.i32, m: ti.i32, mf: ti.i32, counts: ti.template(),
                  scratch: ti.template(), blocks: ti.template(), sink: ti.template(),
                  mode: ti.template(), part: ti.i32):
-    """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5) at the pixels where
-    ``mask`` is 1 (``depth``: the frame or one level of its super-pixel pyramid, ``prm`` that
-    level's parameters): each pixel counts its accepted samples, then adds them to ``sink =
-    (S_acc, h_acc)`` (copy ``part``, this thread's: plain int64 adds), or only their diagonal
-    ``w a_c^2`` to ``sink = (D_acc,)`` (MODE_DIAGONAL), or (MODE_ROWS) writes every sample to
-    ``sink = (row_idx, row_a, row_y, row_w, row_z, row_status)`` at row ``(pixel slot) * (mf
-    + m + 1) + (j + mf)``, pixel slot ``vs * ceil(W / stride) + u / stride`` (MODE_MISFIT:
-    :func:`misfit_frame`). The row's counters go to ``counts[vs]``; ``scratch``
-    (rows, mf + m + 1, 8) holds the corner indices of the pixel the row is on, ``blocks``
-    (rows, mf + m + 1, 11) the row's block cache per sample index (block, 8 rows)."""
+    """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5) where ``mask`` is 1
+    (``depth``: the frame or a level of its super-pixel pyramid, ``prm`` that level's): each
+    pixel counts its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` (copy
+    ``part``, this thread's: plain int64 adds), or their diagonal ``w a_c^2`` to ``(D_acc,)``
+    (MODE_DIAGONAL), or (MODE_ROWS) writes each sample to ``(row_idx, row_a, row_y, row_w,
+    row_z, row_status)`` at row ``(vs ceil(W / stride) + u / stride) (mf + m + 1) + j + mf``
+    (MODE_MISFIT: :func:`misfit_frame`). Counters to ``counts[vs]``; ``scratch`` (rows, mf +
+    m + 1, 8): the corners of the pixel's samples, ``blocks`` (.., 11) the block cache."""
     H, W = depth.shape[0], depth.shape[1]
     n_us = (W + stride - 1) // stride
     M = ti.Matrix([[prm[P_M + 3 * r + c] for c in ti.static(range(3))]
@@ -258,6 +256,10 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                          * prm[P_PIXELS])
             var_pixel = sd * sd + prm[P_VAR_EXTRA] + prm[P_VAR_CORR]  # one pixel's noise
             inv_var = 1.0 / (var_pixel + (rho - 1.0) * prm[P_VAR_CORR])
+            # P_SLOPE (experiment): a normal off by eps moves y_j by delta_j |ray| eps sin(angle);
+            # w_j = w / (1 + delta_j^2 eps^2 sin^2 |ray|^2 |P_SLOPE| / s^2) (< 0: delta_j > 0 only)
+            slope = ti.abs(prm[P_SLOPE]) * ti.cast(nf[4] * nf[4] * ray.norm_sqr(), ti.f64) \
+                * (1.0 - ti.min(cos_a * cos_a, 1.0)) * inv_var
             m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
             # pass 0 looks the cells up and counts the pixel's accepted samples n_acc (corner
             # indices wait in the scratch); pass 1 adds them (or writes rows), w = 1 / (n_acc s^2)
@@ -293,9 +295,11 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                 # a super-pixel is the mean of its k^2 pixels: it carries their information
                 w = prm[P_PIXELS] * inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64),
                                                      prm[P_SHARE])
-                ws = w * scale
                 for j in range(-mf, m_b + 1):
                     delta = ti.cast(j, ti.f64) * spacing
+                    dd = ti.select(prm[P_SLOPE] < 0, ti.max(delta, 0.0), delta)  # P_SLOPE:
+                    wj = w / (1.0 + dd * dd * slope)
+                    ws = wj * scale
                     z = D + delta
                     if z <= 0:
                         continue
@@ -315,7 +319,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                         row_status[r] = ti.select(accepted, ROW_ACCEPTED, ti.select(
                             idx[7] == -1, ROW_DROPPED, 0))  # -2: gated
                         row_y[r] = y
-                        row_w[r] = ti.select(accepted, w, 0.0)
+                        row_w[r] = ti.select(accepted, wj, 0.0)
                         row_z[r] = z
                         for c in ti.static(range(8)):
                             row_idx[r, c] = idx[c]
@@ -391,9 +395,8 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
                    counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
                    blocks: _NDA(dtype=ti.i32, ndim=3)):
     """One frame into the accumulators ``S_acc``/``h_acc``, parallel over strided pixel rows
-    (:func:`observe_row`), each thread into its own part of the accumulators (rows ``part,
-    part + n_parts, ...``). Determinism: integer adds only; the accumulated values are
-    bitwise reproducible whatever the thread schedule."""
+    (:func:`observe_row`), each thread into its own part (rows ``part, part + n_parts, ...``):
+    integer adds only, bitwise reproducible whatever the thread schedule."""
     n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, S_acc.shape[0]
     # the parts dealt out like the stencil kernels' chunks (kernels.stencil.first_chunk): each
     # part goes to exactly one virtual iteration (no race) and the parts to different threads
@@ -446,16 +449,13 @@ def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2
                 m3: _NDA(dtype=ti.i8, ndim=2), m4: _NDA(dtype=ti.i8, ndim=2),
                 prm: _NDA(dtype=ti.f64, ndim=1), levels: ti.i32):
     """A frame's super-pixel pyramid in one launch (``prm``: its full-resolution parameters).
-
     Levels l = 1..``levels`` (``d1..d4``, blocks of ``k = 2^l`` pixels a side, the image size
-    divided by k and rounded down; those above ``levels`` unused): the mean depth of each k x k
-    block of valid pixels on one plane (:func:`kernels.funcs.block_is_planar`), else 0.
-
-    Masks ``m0..m4`` (level 0 is the frame): 1 where the level observes the pixel (it is valid
-    and spans at most ``prm[P_AGGREGATE]`` voxel footprints, ``k <= aggregate * f * voxel /
-    depth`` with f the smaller focal length, and no coarser block containing it does), 2
-    where a coarser block observes it, 0 elsewhere. Every valid pixel of the frame is then
-    observed exactly once. Deterministic (one thread per output pixel)."""
+    divided by k, rounded down): the mean depth of each k x k block of valid pixels on one
+    plane (:func:`kernels.funcs.block_is_planar`), else 0. Masks ``m0..m4`` (level 0: the
+    frame): 1 where the level observes the pixel (valid, spanning at most ``prm[P_AGGREGATE]``
+    voxel footprints, ``k <= aggregate f voxel / depth``, f the smaller focal length, and no
+    coarser block containing it does), 2 where a coarser block observes it, else 0: every valid
+    pixel is observed exactly once. Deterministic (one thread per output pixel)."""
     reach = ti.cast(prm[P_JUMP] / prm[P_K], ti.f32)
     foot = prm[P_AGGREGATE] * ti.min(prm[P_K], prm[P_K + 1]) / prm[P_INV_VOXEL]
     for lv in ti.static(range(1, 5)):
