@@ -297,7 +297,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                                                      prm[P_SHARE])
                 for j in range(-mf, m_b + 1):
                     delta = ti.cast(j, ti.f64) * spacing
-                    dd = ti.select(prm[P_SLOPE] < 0, ti.max(delta, 0.0), delta)  # P_SLOPE:
+                    dd = ti.select(prm[P_SLOPE] < 0, ti.max(delta, 0.0), delta)  # (above)
                     wj = w / (1.0 + dd * dd * slope)
                     ws = wj * scale
                     z = D + delta
