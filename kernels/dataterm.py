@@ -61,8 +61,8 @@ COUNT_NAMES = ("pixels_valid", "pixels_used", "samples_accepted", "samples_dropp
 
 MODE_ACCUMULATE, MODE_ROWS, MODE_MISFIT, MODE_DIAGONAL = 0, 1, 2, 3  # what observe_row does
 MISFIT_SCALE = float(1 << 24)  # fixed-point units per unit of a misfit sum (shares, voxel^2)
-#: Largest squared residual one sample adds to the misfit, in units of its noise variance (10
-#: sigma): a gross residual (an occlusion edge) marks its voxels without swamping their sums.
+#: Largest squared residual one sample adds to the misfit, in noise variances (10 sigma): a
+#: gross residual (an occlusion edge) marks its voxels without swamping their sums.
 MISFIT_CAP = 100.0
 #: The misfit counts the samples within this many voxels of their pixel's measured surface
 #: (``|y| < MISFIT_NEAR h``): those in the cells that hold the zero crossing, where a vertex
@@ -339,9 +339,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                                 r -= a[c] * ti.cast(mu[idx[c]], ti.f64)
                                 p += a[c] * a[c] * ti.cast(var[idx[c]], ti.f64)
                             share = w / inv_var
-                            # the residual of a super-pixel is that of the mean of its k^2
-                            # pixels: their shared part P_VAR_CORR does not average down
-                            var_k = (sd * sd + prm[P_VAR_EXTRA]) / prm[P_PIXELS] + prm[P_VAR_CORR]
+                            # a super-pixel's k^2 pixels' mean (P_VAR_CORR stays); + P_SLOPE's
+                            var_k = (sd * sd + prm[P_VAR_EXTRA]) / prm[P_PIXELS] + prm[P_VAR_CORR] \
+                                + dd * dd * slope / inv_var
                             inv_h2 = prm[P_INV_VOXEL] * prm[P_INV_VOXEL]
                             r2 = ti.min(r * r, MISFIT_CAP * var_k) * inv_h2
                             v2 = ti.max(var_k - p, 0.1 * var_k) * inv_h2

@@ -8,8 +8,10 @@ angle noise at its baseline, ``sigma fx / (sqrt(2) r D)`` (:func:`kernels.datate
 the per-pixel rule of the default), which the default noise model leaves out (the incidence
 floor ``observation.cos_min`` stands in for it). The kernel parameter ``P_SLOPE`` (0 by default,
 which leaves every weight as it is, byte for byte) divides each sample's weight by ``1 +
-delta^2 eps^2 sin^2(angle) |ray|^2 |P_SLOPE| / sigma^2``; negative, only the samples behind the
-surface (``delta > 0``). This runs a script with ``P_SLOPE = SLOPE`` (environment)::
+delta^2 eps^2 sin^2(angle) |ray|^2 |P_SLOPE| / sigma^2``, and the local-noise misfit expects
+that much more variance of the sample; negative, only the samples behind the surface (``delta >
+0``). (Until 027a8a8 the misfit's expectation left the term out.) This runs a script with
+``P_SLOPE = SLOPE`` (environment)::
 
     SLOPE=1 python docs/experiments/normal_slope_noise.py tools/suite.py --json slope.json
     SLOPE=-1 python docs/experiments/normal_slope_noise.py tools/suite.py --json behind.json
