@@ -25,10 +25,10 @@ byte); ``RADIUS=frame`` one baseline per frame, the rule's at the frame's median
 (radians, default 0.6).
 """
 
-import math
 import os
 import runpy
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +38,6 @@ sys.path.insert(0, str(ROOT / "tools"))
 sys.path.insert(0, str(ROOT))
 
 from bftaichi.stages import bandsolve, observe  # noqa: E402
-from kernels.dataterm import FRACTION_BITS  # noqa: E402
 
 _make_observer = observe.make_observer
 THETA = float(os.environ.get("THETA", str(observe.NORMAL_MAX_NOISE_RAD)))
@@ -47,15 +46,13 @@ RADIUS = os.environ.get("RADIUS", "pixel")
 
 def make_observer(band, obs, voxel_size_m, trunc_m, sigma_extra_m=0.0, sigma_corr_m=0.0):
     """:func:`bftaichi.stages.observe.make_observer` with the environment's ablations."""
+    if os.environ.get("AXIAL", "1") == "0":  # the independent part isotropic, as it was:
+        corr = min(float(sigma_corr_m), float(sigma_extra_m))  # in the model noise instead
+        independent = float(np.sqrt(max(sigma_extra_m ** 2 - corr ** 2, 0.0)))
+        obs = replace(obs, sigma_model_m=float(np.hypot(obs.sigma_model_m, independent)))
+        sigma_extra_m = sigma_corr_m = corr
     observer = _make_observer(band, obs, voxel_size_m, trunc_m, sigma_extra_m, sigma_corr_m)
-    if os.environ.get("AXIAL", "1") == "0":  # the independent part isotropic, as it was
-        observer.sigma_model_m = float(np.hypot(observer.sigma_model_m, observer.sigma_axial_m))
-        observer.sigma_axial_m = 0.0
-        a, _, _, cos_min = observer.depth_model  # the fixed-point scale of that noise floor
-        observer.w_max = 1.0 / ((a * cos_min) ** 2 + observer.sigma_pose_m ** 2
-                                + observer.sigma_model_m ** 2)
-        observer.fixed_scale = 2.0 ** math.floor(FRACTION_BITS - math.log2(observer.w_max))
-    observer.normal_max_noise_rad = THETA  # read per frame, like the two above
+    observer.normal_max_noise_rad = THETA  # read per frame
     if RADIUS == "frame":
         observer.normal_max_noise_rad = 0.0
         observer.frame_rule = True
