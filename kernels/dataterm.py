@@ -44,7 +44,7 @@ P_AGGREGATE = 39  # largest super-pixel side, in voxel footprints (0: every pixe
 P_BEHIND = 40  # 1: the samples behind the surface reach tau max(cos, cos_min) (0: tau)
 P_VAR_AXIAL = 41  # per-pixel depth noise beyond the sensor model, along the ray, metres^2
 P_NORMAL_NOISE = 42  # > 0: r per pixel, the smallest with normal angle noise <= this, radians
-P_SLOPE = 43  # experiment (docs/experiments/normal_slope_noise.py; 0: off): see observe_row
+P_SLOPE = 43  # experiment, 0: off (docs/experiments/normal_slope_noise.py; < 0: behind only)
 N_PARAMS = 44
 
 # Per-row counters (columns of `counts`):
@@ -93,6 +93,12 @@ def ray_C(prm: ti.template(), u: ti.i32, v: ti.i32):
 
 
 @ti.func
+def depth_sigma(prm: ti.template(), d: ti.f64) -> ti.f64:
+    """Axial depth noise of a pixel at depth ``d``, metres: the model's and the extra (step 4)."""
+    return ti.sqrt((prm[P_A] + prm[P_B] * (d - prm[P_Z0]) ** 2) ** 2 + prm[P_VAR_AXIAL])
+
+
+@ti.func
 def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32):
     """Camera-frame unit normal of valid pixel (u, v) facing the camera, a fallback flag and its
     angle noise: ``(nx, ny, nz, fallback, eps)`` float32 (module docstring, step 1)."""
@@ -100,8 +106,7 @@ def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32)
     d = depth[v, u]
     r = ti.cast(prm[P_RADIUS], ti.i32)
     # the normal's angle noise at r = 1: the depth noise sd over the baseline sqrt(2) d / fx
-    sd = ti.sqrt((prm[P_A] + prm[P_B] * (d - prm[P_Z0]) ** 2) ** 2 + prm[P_VAR_AXIAL])
-    noise = sd * prm[P_K] / (ti.sqrt(2.0) * ti.cast(d, ti.f64))
+    noise = depth_sigma(prm, ti.cast(d, ti.f64)) * prm[P_K] / (ti.sqrt(2.0) * ti.cast(d, ti.f64))
     if prm[P_NORMAL_NOISE] > 0:
         r = ti.min(ti.max(ti.cast(ti.ceil(noise / prm[P_NORMAL_NOISE]), ti.i32), 1), r)
     reach = ti.cast(prm[P_JUMP], ti.f32) * d * ti.cast(r, ti.f32)
@@ -247,8 +252,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
             if prm[P_BEHIND] > 0:
                 m_b = ti.cast(ti.cast(m, ti.f64) * ti.max(cos_a, cos_min), ti.i32)
             # y = (z - D) <n, ray>: an axial depth error e moves y by e |<n, ray>|
-            sd = ti.sqrt((prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) ** 2 + prm[P_VAR_AXIAL]) \
-                * ti.max(cos_a, cos_min) * ti.cast(ray.norm(), ti.f64)
+            sd = depth_sigma(prm, D) * ti.max(cos_a, cos_min) * ti.cast(ray.norm(), ti.f64)
             # a frame's pixels over one voxel share its pose / calibration error (variance
             # P_VAR_CORR): their mean has variance sd^2 / rho + corr, so each of the rho pixels
             # counts as sd^2 + rho corr (rho: the voxel's footprint in full-resolution pixels)
@@ -256,8 +260,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                          * prm[P_PIXELS])
             var_pixel = sd * sd + prm[P_VAR_EXTRA] + prm[P_VAR_CORR]  # one pixel's noise
             inv_var = 1.0 / (var_pixel + (rho - 1.0) * prm[P_VAR_CORR])
-            # P_SLOPE (experiment): a normal off by eps moves y_j by delta_j |ray| eps sin(angle);
-            # w_j = w / (1 + delta_j^2 eps^2 sin^2 |ray|^2 |P_SLOPE| / s^2) (< 0: delta_j > 0 only)
+            # P_SLOPE: w_j = w / (1 + delta_j^2 eps^2 sin^2 |ray|^2 |P_SLOPE| / s^2) (see P_SLOPE)
             slope = ti.abs(prm[P_SLOPE]) * ti.cast(nf[4] * nf[4] * ray.norm_sqr(), ti.f64) \
                 * (1.0 - ti.min(cos_a * cos_a, 1.0)) * inv_var
             m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
@@ -579,16 +582,13 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
                  ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                  mu: _NDA(dtype=ti.f32, ndim=1), var: _NDA(dtype=ti.f32, ndim=1),
                  R_acc: _NDA(dtype=ti.i64, ndim=3), counts: _NDA(dtype=ti.i64, ndim=2),
-                 scratch: _NDA(dtype=ti.i32, ndim=3),
-                 blocks: _NDA(dtype=ti.i32, ndim=3)):
-    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 3): per voxel,
-    ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k a_k s_k (sigma_k^2 - p_k)``
-    (both in voxel^2; ``p_k = sum_c a_c^2 var_c``, at most 0.9 sigma_k^2, the part of the noise
-    the fit absorbs, from the posterior variances ``var``) and ``sum_k a_k s_k``, in units of
-    1 / MISFIT_SCALE, over the accepted samples k within ``MISFIT_NEAR`` voxels of their
-    pixel's surface (the same samples, rows and weights as :func:`observe_frame`): ``r_k =
-    y_k - a_k . mu``, ``sigma_k`` its noise and ``s_k = w_k sigma_k^2`` its share of its
-    pixel. Integer adds into per-thread parts: deterministic."""
+                 scratch: _NDA(dtype=ti.i32, ndim=3), blocks: _NDA(dtype=ti.i32, ndim=3)):
+    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 3), per voxel, in
+    1 / MISFIT_SCALE: ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k a_k s_k
+    (sigma_k^2 - p_k)`` (voxel^2; ``p_k = sum_c a_c^2 var_c`` <= 0.9 sigma_k^2, the part the fit
+    absorbs) and ``sum_k a_k s_k``, over the accepted samples k within ``MISFIT_NEAR`` voxels of
+    their pixel's surface (as :func:`observe_frame`): ``r_k = y_k - a_k . mu``, ``sigma_k`` its
+    noise, ``s_k = w_k sigma_k^2`` its share of its pixel. Per-thread integer adds."""
     n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, R_acc.shape[0]
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))  # as in observe_frame
     for t in range(n_virtual):

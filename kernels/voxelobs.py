@@ -50,9 +50,9 @@ import math
 import numpy as np
 import taichi as ti
 
-from .dataterm import (MISFIT_CAP, MISFIT_NEAR, MISFIT_SCALE, P_A, P_B, P_COS_MIN, P_INV_VOXEL,
-                       P_JUMP, P_K, P_O, P_R, P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
-                       SATURATION, fixed_point, pixel_normal)
+from .dataterm import (MISFIT_CAP, MISFIT_NEAR, MISFIT_SCALE, P_COS_MIN, P_INV_VOXEL, P_JUMP,
+                       P_K, P_O, P_R, P_VAR_CORR, P_VAR_EXTRA, SATURATION, depth_sigma,
+                       fixed_point, pixel_normal)
 from .funcs import block_mean_depth, floor_i32
 from .layout import BLOCK, decode_keys
 from .observe import MAX_LEVEL, Observer
@@ -184,8 +184,7 @@ def _voxel_observation(i: ti.i32, g, levels: ti.i32, ref: ti.template(),
                     behind *= ti.max(cos_a, cos_min)
                 if t >= -vp[V_FRONT] and t <= behind:
                     y = t * nr
-                    sd = ti.sqrt((prm[P_A] + prm[P_B] * (D - prm[P_Z0]) ** 2) ** 2
-                                 + prm[P_VAR_AXIAL]) * ti.max(cos_a, cos_min) * rn
+                    sd = depth_sigma(prm, D) * ti.max(cos_a, cos_min) * rn
                     n_pix = k_f * k_f * ti.cast(count, ti.f64)
                     var = (sd * sd + prm[P_VAR_EXTRA]) / n_pix + prm[P_VAR_CORR]
                     w = 1.0 / (var * vp[V_SHARE])
