@@ -81,3 +81,26 @@ def test_no_module_over_600_lines():
     long = {str(p.relative_to(ROOT)): n for p in _modules().values()
             if (n := len(p.read_text().splitlines())) > 600}
     assert not long, long
+
+
+def test_every_tool_measures_its_own_checkout():
+    """A script under ``tools/`` or ``docs/experiments/`` that imports the project puts its own
+    checkout first on ``sys.path`` before it does (``import checkout``, or the root inserted
+    by hand): ``python tools/X.py`` otherwise imports whichever bftaichi is installed, and a
+    before/after comparison run from two checkouts measures one of them twice."""
+    unguarded = []
+    for path in sorted([*(ROOT / "tools").glob("*.py"), *(ROOT / "docs" / "experiments").glob("*.py")]):
+        tree = ast.parse(path.read_text())
+        first = None  # the line of the first import of bftaichi or kernels, anywhere in the file
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n.split(".")[0] in PACKAGES for n in names):
+                first = node.lineno if first is None else min(first, node.lineno)
+        if first is None or path.name == "checkout.py":
+            continue
+        lines = path.read_text().splitlines()[:first - 1]
+        if not any(line.startswith("import checkout") or "sys.path.insert(0, str(ROOT))" in line
+                   for line in lines):
+            unguarded.append(path.relative_to(ROOT).as_posix())
+    assert not unguarded, f"import bftaichi before putting this checkout on sys.path: {unguarded}"

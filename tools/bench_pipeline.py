@@ -43,6 +43,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+import checkout  # noqa: E402  (this checkout's bftaichi first on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "rgbd" / "7scenes-redkitchen"
@@ -85,7 +86,8 @@ def open3d_child(data: Path, voxel: float, n: int, out: Path) -> int:
 def timed(cmd: list[str]) -> dict:
     """Run ``cmd``; its wall seconds, peak resident memory (MiB) and exit code."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=checkout.child_env())  # this checkout's bftaichi
     _, status, usage = os.wait4(proc.pid, 0)
     seconds = time.perf_counter() - t0
     out, err = proc.stdout.read(), proc.stderr.read()

@@ -31,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import checkout  # noqa: E402  (this checkout's bftaichi first on sys.path)
 
 
 #: Run the command line with the first call of every Taichi kernel timed; the seconds go, as
@@ -97,7 +98,7 @@ def main(argv=None) -> int:
     if args.ab is not None and "=" not in args.ab:
         ap.error(f"--ab {args.ab!r}: expected NAME=VALUE")
     exe = [sys.executable, "-m", "bftaichi.cli"]
-    base = dict(os.environ)
+    base = checkout.child_env()  # the children run this checkout's bftaichi
     if args.ab is not None:
         name, value = args.ab.split("=", 1)
         base.pop(name, None)

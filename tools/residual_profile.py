@@ -30,6 +30,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 BINS = ((-5.0, -3.0), (-3.0, -1.5), (-1.5, -0.5), (-0.5, 0.5), (0.5, 1.5), (1.5, 3.0), (3.0, 5.0))
 

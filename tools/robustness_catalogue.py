@@ -19,6 +19,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 HEADER = """# Robustness: what a user sees when something is wrong
 

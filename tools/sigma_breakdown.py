@@ -27,6 +27,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 
 def main(argv=None) -> int:

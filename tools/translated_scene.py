@@ -25,6 +25,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 OFFSET = np.array([500_000.0, 5_000_000.0, 100.0])
 

@@ -27,6 +27,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # conftest: the stage calls and Q of the tests
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 from test_vertex_sigma import SPHERE_SETS  # noqa: E402
 
 #: Small scenes (--set overrides of the default config): N of 3k-30k band voxels

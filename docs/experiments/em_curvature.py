@@ -25,6 +25,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 
 def main(argv) -> int:

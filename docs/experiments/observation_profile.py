@@ -19,10 +19,14 @@ compiled first, the calls interleaved frame by frame):
    next cells lie close in the accumulators), and that both give the same sums.
 """
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "rgbd" / "7scenes-redkitchen"
 

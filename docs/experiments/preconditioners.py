@@ -14,10 +14,14 @@ prolongation, Galerkin coarse operators, one damped Jacobi sweep before and afte
 solve on the coarsest level).
 """
 import sys
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 
 def dump(path, argv):

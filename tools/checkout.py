@@ -1,0 +1,30 @@
+"""The tools measure the checkout they live in.
+
+``python tools/X.py`` puts ``tools/`` on ``sys.path``, not the repository root, so a plain
+``import bftaichi`` finds whichever bftaichi is installed. With an editable install of another
+clone (the usual way to compare a change against a worktree of the commit before it), both
+sides of a before/after comparison would then measure the same code. Every tool imports this
+module before bftaichi::
+
+    import checkout  # noqa: F401  (this checkout's bftaichi and kernels first on sys.path)
+
+and starts child processes with :func:`child_env`, so they import this checkout too.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def child_env(env: dict | None = None) -> dict:
+    """``env`` (default: this process's environment) with this checkout first on
+    ``PYTHONPATH``: a child Python (``python -m bftaichi.cli``, ``python -c``) imports it."""
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+    return env
