@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd" / "7scenes-redkitchen"

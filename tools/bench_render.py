@@ -11,6 +11,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]

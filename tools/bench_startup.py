@@ -31,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+
 import checkout  # noqa: E402  (this checkout's bftaichi first on sys.path)
 
 

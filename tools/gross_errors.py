@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import re
 import sys
 from collections import defaultdict
+
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 

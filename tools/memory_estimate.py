@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -31,6 +31,7 @@ import argparse
 import sys
 import tempfile
 from pathlib import Path
+
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]

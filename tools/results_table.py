@@ -17,6 +17,7 @@ import json
 import sys
 import tempfile
 from pathlib import Path
+
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
