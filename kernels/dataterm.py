@@ -44,8 +44,7 @@ P_AGGREGATE = 39  # largest super-pixel side, in voxel footprints (0: every pixe
 P_BEHIND = 40  # 1: the samples behind the surface reach tau max(cos, cos_min) (0: tau)
 P_VAR_AXIAL = 41  # per-pixel depth noise beyond the sensor model, along the ray, metres^2
 P_NORMAL_NOISE = 42  # > 0: r per pixel, the smallest with normal angle noise <= this, radians
-P_SLOPE = 43  # experiment, 0: off (docs/experiments/normal_slope_noise.py; < 0: behind only)
-N_PARAMS = 44
+N_PARAMS = 43
 
 # Per-row counters (columns of `counts`):
 C_VALID = 0  # strided pixels with valid depth
@@ -100,14 +99,14 @@ def depth_sigma(prm: ti.template(), d: ti.f64) -> ti.f64:
 
 @ti.func
 def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32):
-    """Camera-frame unit normal of valid pixel (u, v) facing the camera, a fallback flag and its
-    angle noise: ``(nx, ny, nz, fallback, eps)`` float32 (module docstring, step 1)."""
+    """Camera-frame unit normal of valid pixel (u, v) facing the camera, and a fallback flag:
+    ``(nx, ny, nz, fallback)`` float32 (module docstring, step 1)."""
     H, W = depth.shape[0], depth.shape[1]
     d = depth[v, u]
     r = ti.cast(prm[P_RADIUS], ti.i32)
-    # the normal's angle noise at r = 1: the depth noise sd over the baseline sqrt(2) d / fx
-    noise = depth_sigma(prm, ti.cast(d, ti.f64)) * prm[P_K] / (ti.sqrt(2.0) * ti.cast(d, ti.f64))
-    if prm[P_NORMAL_NOISE] > 0:
+    if prm[P_NORMAL_NOISE] > 0:  # angle noise at r = 1: depth noise over sqrt(2) d / fx
+        dd = ti.cast(d, ti.f64)
+        noise = depth_sigma(prm, dd) * prm[P_K] / (ti.sqrt(2.0) * dd)
         r = ti.min(ti.max(ti.cast(ti.ceil(noise / prm[P_NORMAL_NOISE]), ti.i32), 1), r)
     reach = ti.cast(prm[P_JUMP], ti.f32) * d * ti.cast(r, ti.f32)
     jump_u = reach / ti.cast(prm[P_K], ti.f32)  # r D tan(max slope) / fx
@@ -149,7 +148,7 @@ def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32)
         fallback = 0.0
     else:
         n = -ray / ray.norm()
-    return ti.Vector([n[0], n[1], n[2], fallback, ti.cast(noise, ti.f32) / ti.cast(r, ti.f32)])
+    return ti.Vector([n[0], n[1], n[2], fallback])
 
 
 @ti.func
@@ -260,9 +259,6 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                          * prm[P_PIXELS])
             var_pixel = sd * sd + prm[P_VAR_EXTRA] + prm[P_VAR_CORR]  # one pixel's noise
             inv_var = 1.0 / (var_pixel + (rho - 1.0) * prm[P_VAR_CORR])
-            # P_SLOPE: w_j = w / (1 + delta_j^2 eps^2 sin^2 |ray|^2 |P_SLOPE| / s^2) (see P_SLOPE)
-            slope = ti.abs(prm[P_SLOPE]) * ti.cast(nf[4] * nf[4] * ray.norm_sqr(), ti.f64) \
-                * (1.0 - ti.min(cos_a * cos_a, 1.0)) * inv_var
             m_ray = M @ ti.Vector([ti.cast(u, ti.f64), ti.cast(v, ti.f64), 1.0])
             # pass 0 looks the cells up and counts the pixel's accepted samples n_acc (corner
             # indices wait in the scratch); pass 1 adds them (or writes rows), w = 1 / (n_acc s^2)
@@ -298,11 +294,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                 # a super-pixel is the mean of its k^2 pixels: it carries their information
                 w = prm[P_PIXELS] * inv_var / ti.min(ti.cast(ti.max(n_acc, 1), ti.f64),
                                                      prm[P_SHARE])
+                ws = w * scale
                 for j in range(-mf, m_b + 1):
                     delta = ti.cast(j, ti.f64) * spacing
-                    dd = ti.select(prm[P_SLOPE] < 0, ti.max(delta, 0.0), delta)  # (above)
-                    wj = w / (1.0 + dd * dd * slope)
-                    ws = wj * scale
                     z = D + delta
                     if z <= 0:
                         continue
@@ -322,7 +316,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                         row_status[r] = ti.select(accepted, ROW_ACCEPTED, ti.select(
                             idx[7] == -1, ROW_DROPPED, 0))  # -2: gated
                         row_y[r] = y
-                        row_w[r] = ti.select(accepted, wj, 0.0)
+                        row_w[r] = ti.select(accepted, w, 0.0)
                         row_z[r] = z
                         for c in ti.static(range(8)):
                             row_idx[r, c] = idx[c]
@@ -342,9 +336,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                                 r -= a[c] * ti.cast(mu[idx[c]], ti.f64)
                                 p += a[c] * a[c] * ti.cast(var[idx[c]], ti.f64)
                             share = w / inv_var
-                            # a super-pixel's k^2 pixels' mean (P_VAR_CORR stays); + P_SLOPE's
-                            var_k = (sd * sd + prm[P_VAR_EXTRA]) / prm[P_PIXELS] + prm[P_VAR_CORR] \
-                                + dd * dd * slope / inv_var
+                            # the residual of a super-pixel is that of the mean of its k^2
+                            # pixels: their shared part P_VAR_CORR does not average down
+                            var_k = (sd * sd + prm[P_VAR_EXTRA]) / prm[P_PIXELS] + prm[P_VAR_CORR]
                             inv_h2 = prm[P_INV_VOXEL] * prm[P_INV_VOXEL]
                             r2 = ti.min(r * r, MISFIT_CAP * var_k) * inv_h2
                             v2 = ti.max(var_k - p, 0.1 * var_k) * inv_h2

@@ -52,8 +52,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 VOXEL_M = 0.01
 TAU_VOX = 2  # observation truncation tau, voxels

@@ -41,8 +41,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 GIB = 2 ** 30
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 import bftaichi  # noqa: E402
 from bftaichi.cli import main as cli_main  # noqa: E402

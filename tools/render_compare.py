@@ -27,8 +27,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 DATA = ROOT.parent / "shared" / "data" / "rgbd" / "7scenes-redkitchen"
 
 

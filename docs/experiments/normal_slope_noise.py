@@ -6,12 +6,13 @@ normal off by ``eps`` in the plane of the ray moves it by ``delta |ray| eps sin(
 at the surface, growing with the distance and the incidence angle. ``eps`` is the normal's
 angle noise at its baseline, ``sigma fx / (sqrt(2) r D)`` (:func:`kernels.dataterm.pixel_normal`,
 the per-pixel rule of the default), which the default noise model leaves out (the incidence
-floor ``observation.cos_min`` stands in for it). The kernel parameter ``P_SLOPE`` (0 by default,
-which leaves every weight as it is, byte for byte) divides each sample's weight by ``1 +
+floor ``observation.cos_min`` stands in for it). ``docs/experiments/normal_slope_noise.patch``
+(``git apply`` it first) adds the kernel parameter ``P_SLOPE`` (0 leaves every weight as it is,
+byte for byte), which divides each sample's weight by ``1 +
 delta^2 eps^2 sin^2(angle) |ray|^2 |P_SLOPE| / sigma^2``, and the local-noise misfit expects
 that much more variance of the sample; negative, only the samples behind the surface (``delta >
 0``). (Until 027a8a8 the misfit's expectation left the term out.) This runs a script with
-``P_SLOPE = SLOPE`` (environment)::
+``P_SLOPE = SLOPE`` (environment), the patch applied::
 
     SLOPE=1 python docs/experiments/normal_slope_noise.py tools/suite.py --json slope.json
     SLOPE=-1 python docs/experiments/normal_slope_noise.py tools/suite.py --json behind.json
@@ -30,7 +31,10 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
 sys.path.insert(0, str(ROOT))
 
-from kernels.dataterm import P_SLOPE  # noqa: E402
+try:
+    from kernels.dataterm import P_SLOPE  # noqa: E402
+except ImportError:
+    sys.exit("apply docs/experiments/normal_slope_noise.patch first (git apply)")
 from kernels.observe import Observer  # noqa: E402
 
 SLOPE = float(os.environ.get("SLOPE", "1"))
