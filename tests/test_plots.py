@@ -163,3 +163,33 @@ def test_gallery_copies_the_pngs_named_by_scene(tmp_path):
         f"default_{name}" for name in ALL_PLOTS)
     assert (tmp_path / "run" / "plots" / "calibration.png").is_file()
     assert "default: run" in proc.stdout and "preview.html" in proc.stdout
+
+
+def test_the_reports_metrics_are_those_of_its_outputs(full_run):
+    """The run measures its meshes beside its stages (bftaichi.running.evaluation): what it
+    reports must be what the documented metric functions give for the files it wrote."""
+    from bftaichi.evaluation.metrics import (band_uncertainty, load_mesh, metrics_from_distances,
+                                             surface_distances, vertex_uncertainty)
+    from bftaichi.geometry import mesh_in_local
+    from bftaichi.posterior import Posterior
+
+    report, out, gt = full_run
+    ev = report["config"]["eval"]
+    for name in ("tsdf_mesh.ply", "mesh.ply"):
+        mesh = load_mesh(out / name)
+        want = metrics_from_distances(
+            surface_distances(mesh, gt, int(ev["n_samples"]), int(ev["seed"])),
+            ev["thresholds_mm"], len(mesh.faces))
+        assert report["metrics"][name] == pytest.approx(want, rel=1e-6), name
+    post = Posterior.load(out / "band.npz")
+    for got, want in ((report["uncertainty"],
+                       vertex_uncertainty(post.extract_mesh(local=True),  # the run's frame
+                                          mesh_in_local(gt, post.origin), ev["vertex_sigma"])),
+                      (report["band_uncertainty"],
+                       band_uncertainty(post, gt, ev["near_voxels"], ev["seed"]))):
+        assert got["n"] > 100 and set(got) == set(want)
+        for key in want:  # band.npz's sigma differs from the run's by float rounding (~1e-9
+            # m), which reorders vertices of nearly equal errors: the rank statistics move a bit
+            ranked = key in ("spearman", "ause", "sparsification", "top10_ratio")
+            assert np.allclose(got[key], want[key], rtol=1e-2 if ranked else 1e-5,
+                               atol=1e-9), key

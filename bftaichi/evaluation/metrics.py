@@ -25,9 +25,11 @@ import numpy as np
 from ..errors import BftaichiError, DataError
 
 __all__ = ["geometry_metrics", "surface_distances", "surface_distances_many", "surface_sdf",
+           "SampledSurface", "SurfaceSDF",
            "uncertainty_metrics", "spearman",
            "load_mesh", "check_mesh_file", "format_table", "DEFAULT_THRESHOLDS_MM",
-           "near_surface_voxels", "band_uncertainty", "vertex_errors", "vertex_uncertainty"]
+           "near_surface_voxels", "band_sdf", "band_uncertainty", "vertex_errors",
+           "vertex_uncertainty"]
 
 #: Default F-score thresholds (mm), as in the BayesFusion-SDF paper.
 DEFAULT_THRESHOLDS_MM = (5, 10, 20, 50)
@@ -200,30 +202,54 @@ def surface_distances(pred, gt, n_samples: int = 200_000,
 def surface_distances_many(preds, gt, n_samples: int = 200_000, seed: int = 0) -> list:
     """:func:`surface_distances` of each mesh of ``preds`` against one ``gt``, which is sampled
     and indexed once for all of them (the same values as separate calls)."""
-    from scipy.spatial import cKDTree
-    from trimesh.sample import sample_surface
-
     for pred in preds:
         _check_mesh(pred, "pred")
-    _check_mesh(gt, "gt")
-    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
-        raise BftaichiError(f"n_samples must be a positive integer, got {n_samples!r}")
-    if len(gt.faces) == 0 or not gt.area > 0:
-        raise BftaichiError("gt mesh has no surface (no faces or zero area)")
-    pts_g = tree_g = None
-    out = []
-    for pred in preds:
+    target = SampledSurface(gt, n_samples, seed)
+    return [target.distances(pred) for pred in preds]
+
+
+class SampledSurface:
+    """A ground-truth mesh sampled area-uniformly (``n_samples`` points, ``seed``) and indexed
+    once, lazily (a k-d tree), for :meth:`distances` of any number of meshes to it: the values
+    of :func:`surface_distances`. Safe to use from one thread at a time.
+
+    Raises:
+        BftaichiError (a ValueError) if ``gt`` has no surface, or an argument is invalid.
+    """
+
+    def __init__(self, gt, n_samples: int = 200_000, seed: int = 0):
+        _check_mesh(gt, "gt")
+        if (isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer))
+                or n_samples < 1):
+            raise BftaichiError(f"n_samples must be a positive integer, got {n_samples!r}")
+        if len(gt.faces) == 0 or not gt.area > 0:
+            raise BftaichiError("gt mesh has no surface (no faces or zero area)")
+        self.gt, self.n_samples, self.seed = gt, int(n_samples), seed
+        self._points = self._tree = None
+
+    def index(self) -> None:
+        """Sample and index the ground truth now (otherwise at the first :meth:`distances`)."""
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+            from trimesh.sample import sample_surface
+
+            self._points, _ = sample_surface(self.gt, self.n_samples, seed=self.seed)
+            self._tree = cKDTree(self._points)
+
+    def distances(self, pred) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(d_pg, d_gp)`` of ``pred`` (:func:`surface_distances`), None when ``pred`` has no
+        surface."""
+        from scipy.spatial import cKDTree
+        from trimesh.sample import sample_surface
+
+        _check_mesh(pred, "pred")
         if len(pred.faces) == 0 or not pred.area > 0:
-            out.append(None)
-            continue
-        if tree_g is None:
-            pts_g, _ = sample_surface(gt, int(n_samples), seed=seed)
-            tree_g = cKDTree(pts_g)
-        pts_p, _ = sample_surface(pred, int(n_samples), seed=seed)
-        d_pg, _ = tree_g.query(pts_p, k=1, workers=-1)
-        d_gp, _ = cKDTree(pts_p).query(pts_g, k=1, workers=-1)
-        out.append((d_pg, d_gp))
-    return out
+            return None
+        self.index()
+        pts_p, _ = sample_surface(pred, self.n_samples, seed=self.seed)
+        d_pg, _ = self._tree.query(pts_p, k=1, workers=-1)
+        d_gp, _ = cKDTree(pts_p).query(self._points, k=1, workers=-1)
+        return d_pg, d_gp
 
 
 # --------------------------------------------------------------------------------------------
@@ -253,48 +279,65 @@ def surface_sdf(mesh, points: np.ndarray, spacing_m: float, seed: int = 0,
     Returns:
         ``phi`` (M,) float64 metres and ``valid`` (M,) bool.
     """
-    from scipy.spatial import cKDTree
-    from trimesh.sample import sample_surface
+    return SurfaceSDF(mesh, spacing_m, seed, max_samples)(points)
 
-    _check_mesh(mesh, "mesh")
-    if len(mesh.faces) == 0 or not mesh.area > 0:
-        raise BftaichiError("mesh has no surface (no faces or zero area)")
-    if not (math.isfinite(spacing_m) and spacing_m > 0):
-        raise BftaichiError(f"spacing_m must be a positive number, got {spacing_m!r}")
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    n = int(min(max_samples, max(1000, math.ceil(mesh.area / spacing_m ** 2))))
-    spacing = math.sqrt(mesh.area / n)
-    samples, face = sample_surface(mesh, n, seed=seed)
-    normals = np.asarray(mesh.face_normals)[face]
-    finite = np.all(np.isfinite(points), axis=1)
-    phi = np.zeros(len(points))
-    valid = finite.copy()
-    if not finite.any():
+
+class SurfaceSDF:
+    """:func:`surface_sdf` with the mesh sampled and indexed once (for many point sets, or ahead
+    of the points): ``SurfaceSDF(mesh, spacing_m, seed, max_samples)(points) -> (phi, valid)``,
+    the same values. Safe to call from one thread at a time."""
+
+    def __init__(self, mesh, spacing_m: float, seed: int = 0, max_samples: int = 4_000_000):
+        from scipy.spatial import cKDTree
+        from trimesh.sample import sample_surface
+
+        _check_mesh(mesh, "mesh")
+        if len(mesh.faces) == 0 or not mesh.area > 0:
+            raise BftaichiError("mesh has no surface (no faces or zero area)")
+        if not (math.isfinite(spacing_m) and spacing_m > 0):
+            raise BftaichiError(f"spacing_m must be a positive number, got {spacing_m!r}")
+        n = int(min(max_samples, max(1000, math.ceil(mesh.area / spacing_m ** 2))))
+        self.spacing = math.sqrt(mesh.area / n)
+        self.samples, face = sample_surface(mesh, n, seed=seed)
+        self.normals = np.asarray(mesh.face_normals)[face]
+        self.tree = cKDTree(self.samples)
+        # Open boundary: edges used by one face only (the mesh's own vertex indexing; a mesh
+        # with duplicated vertices at seams shows spurious boundaries there, which only drops
+        # points).
+        edges = np.sort(np.asarray(mesh.edges, np.int64), axis=1)
+        n_v = max(len(mesh.vertices), 1)
+        # one int64 key per edge (ascending keys = lexicographic edges): np.unique's result,
+        # without its row sort
+        keys, count = np.unique(edges[:, 0] * n_v + edges[:, 1], return_counts=True)
+        uniq = np.stack([keys // n_v, keys % n_v], axis=1)
+        boundary = uniq[count == 1]
+        self.edge_tree = None
+        if len(boundary):
+            verts = np.asarray(mesh.vertices)
+            a, b = verts[boundary[:, 0]], verts[boundary[:, 1]]
+            # Points along the boundary edges, spaced below the sample spacing.
+            steps = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / self.spacing)
+                               ).astype(int)
+            t = np.concatenate([np.arange(k + 1) / k for k in steps])
+            edge_pts = np.repeat(a, steps + 1, axis=0) + t[:, None] * np.repeat(
+                b - a, steps + 1, axis=0)
+            self.edge_tree = cKDTree(edge_pts)
+
+    def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        finite = np.all(np.isfinite(points), axis=1)
+        phi = np.zeros(len(points))
+        valid = finite.copy()
+        if not finite.any():
+            return phi, valid
+        _, nearest = self.tree.query(points[finite], k=1, workers=-1)
+        phi[finite] = np.einsum("ij,ij->i", points[finite] - self.samples[nearest],
+                                self.normals[nearest])
+        if self.edge_tree is not None:
+            d_edge, _ = self.edge_tree.query(self.samples[nearest], k=1, workers=-1)
+            idx = np.flatnonzero(finite)
+            valid[idx] = d_edge > 2 * self.spacing + np.abs(phi[idx])
         return phi, valid
-    _, nearest = cKDTree(samples).query(points[finite], k=1, workers=-1)
-    phi[finite] = np.einsum("ij,ij->i", points[finite] - samples[nearest], normals[nearest])
-
-    # Open boundary: edges used by one face only (the mesh's own vertex indexing; a mesh with
-    # duplicated vertices at seams shows spurious boundaries there, which only drops points).
-    edges = np.sort(np.asarray(mesh.edges, np.int64), axis=1)
-    n_v = max(len(mesh.vertices), 1)
-    # one int64 key per edge (ascending keys = lexicographic edges): np.unique's result,
-    # without its row sort
-    keys, count = np.unique(edges[:, 0] * n_v + edges[:, 1], return_counts=True)
-    uniq = np.stack([keys // n_v, keys % n_v], axis=1)
-    boundary = uniq[count == 1]
-    if len(boundary):
-        verts = np.asarray(mesh.vertices)
-        a, b = verts[boundary[:, 0]], verts[boundary[:, 1]]
-        # Points along the boundary edges, spaced below the sample spacing.
-        steps = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / spacing)).astype(int)
-        t = np.concatenate([np.arange(k + 1) / k for k in steps])
-        edge_pts = np.repeat(a, steps + 1, axis=0) + t[:, None] * np.repeat(b - a, steps + 1,
-                                                                         axis=0)
-        d_edge, _ = cKDTree(edge_pts).query(samples[nearest], k=1, workers=-1)
-        idx = np.flatnonzero(finite)
-        valid[idx] = d_edge > 2 * spacing + np.abs(phi[idx])
-    return phi, valid
 
 
 def uncertainty_metrics(mean: np.ndarray, sigma: np.ndarray, truth: np.ndarray,
@@ -404,15 +447,16 @@ def vertex_errors(vertices: np.ndarray, gt) -> np.ndarray:
     return np.sqrt(np.maximum(d2, 0.0))
 
 
-def vertex_uncertainty(mesh, gt, attribute: str = "sigma") -> dict | None:
+def vertex_uncertainty(mesh, gt, attribute: str = "sigma", errors=None) -> dict | None:
     """Calibration of the vertex ``attribute`` (default ``sigma``, metres) of ``mesh`` (a
     ``trimesh.Trimesh`` with ``vertex_attributes``) against its exact vertex errors
-    (:func:`vertex_errors`): :func:`uncertainty_metrics` with ``e = |phi_true(v)|``. None when the
-    mesh has fewer than 2 vertices."""
+    (:func:`vertex_errors`, or ``errors`` when the caller computed them already):
+    :func:`uncertainty_metrics` with ``e = |phi_true(v)|``. None when the mesh has fewer than 2
+    vertices."""
     sigma = np.asarray(mesh.vertex_attributes[attribute], np.float64)
     if len(sigma) < 2:
         return None
-    err = vertex_errors(mesh.vertices, gt)
+    err = vertex_errors(mesh.vertices, gt) if errors is None else np.asarray(errors, np.float64)
     return uncertainty_metrics(err, sigma, np.zeros_like(err))
 
 
@@ -484,30 +528,38 @@ def format_table(rows: dict[str, dict], keys: list[str] | None = None) -> str:
     return "\n".join(lines)
 
 
-def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0):
+def near_surface_voxels(post, gt, near_voxels: float = 1.0, seed: int = 0, sdf=None):
     """``(mean, sigma, phi)`` of the observed band voxels (bootstrap weight > 0) within
     ``near_voxels`` voxels of the ground-truth surface ``gt`` (world coordinates), ``phi`` their
     true signed distance (:func:`bftaichi.evaluation.metrics.surface_sdf`, sampled every
-    voxel / 4, computed in the posterior's local frame); None when fewer than 2 voxels
-    qualify."""
-    from ..geometry import mesh_in_local
-
+    voxel / 4, computed in the posterior's local frame; ``sdf``: that :class:`SurfaceSDF`,
+    prepared by the caller, in place of ``gt``); None when fewer than 2 voxels qualify."""
     vs = post.voxel_size
     centres = (post.ijk.astype(np.float64) + 0.5) * vs
-    phi, valid = surface_sdf(mesh_in_local(gt, post.origin), centres, spacing_m=vs / 4,
-                             seed=seed)
+    if sdf is None:
+        sdf = band_sdf(gt, post.origin, vs, seed)
+    phi, valid = sdf(centres)
     near = valid & (post.weight > 0) & (np.abs(phi) <= near_voxels * vs)
     if np.count_nonzero(near) < 2:
         return None
     return post.mean[near], post.sigma[near], phi[near]
 
 
-def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0) -> dict | None:
+def band_sdf(gt, origin, voxel_size_m: float, seed: int = 0) -> SurfaceSDF:
+    """The :class:`SurfaceSDF` :func:`near_surface_voxels` judges a band with: ``gt`` (world
+    coordinates) in the local frame at ``origin``, sampled every ``voxel_size_m / 4``."""
+    from ..geometry import mesh_in_local
+
+    return SurfaceSDF(mesh_in_local(gt, origin), voxel_size_m / 4, seed)
+
+
+def band_uncertainty(post, gt, near_voxels: float = 1.0, seed: int = 0,
+                     sdf=None) -> dict | None:
     """Calibration of the posterior against the ground-truth surface (DESIGN.md section 6):
     :func:`bftaichi.evaluation.metrics.uncertainty_metrics` of ``post.mean`` and ``post.sigma`` against the
-    true signed distance over :func:`near_surface_voxels`. None when fewer than 2 voxels
-    qualify."""
-    near = near_surface_voxels(post, gt, near_voxels, seed)
+    true signed distance over :func:`near_surface_voxels` (``sdf``: its prepared
+    :func:`band_sdf`). None when fewer than 2 voxels qualify."""
+    near = near_surface_voxels(post, gt, near_voxels, seed, sdf)
     if near is None:
         return None
     out = uncertainty_metrics(*near)

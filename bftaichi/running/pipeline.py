@@ -28,7 +28,6 @@ from .. import backend
 from ..config import Config, parse_slice, save_config
 from ..errors import BftaichiError, ConfigError, DataError, NoSurfaceError
 from ..frame import clean_depth
-from ..geometry import mesh_in_local
 from ..io import ensure_out_dir, prepare_out_dir, write_json, write_mesh_ply, write_npz
 from ..posterior import mesh_attrs
 from ..reconstructor import Reconstructor
@@ -225,7 +224,20 @@ def run(cfg: Config, out_dir: str | os.PathLike, *, overwrite: bool = False,
 def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool,
                 memory: dict, checks, update=None):
     """The stages of :func:`run`, writing into the staging folder ``out``; ``checks``: what
-    :func:`~bftaichi.plausibility.check_inputs` found."""
+    :func:`~bftaichi.plausibility.check_inputs` found. With a ground truth, its metrics are
+    computed beside the stages (:class:`~.evaluation.RunEvaluation`)."""
+    if gt is None:
+        return _stages(cfg, frames, None, out, timer, t_start, progress, memory, checks, update)
+    from .evaluation import RunEvaluation
+
+    with RunEvaluation(gt, cfg.eval, cfg.tsdf.voxel_size_m, plots=cfg.run.plots) as evaluation:
+        return _stages(cfg, frames, gt, out, timer, t_start, progress, memory, checks, update,
+                       evaluation)
+
+
+def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool,
+            memory: dict, checks, update=None, evaluation=None):
+    """:func:`_run_stages`' body (``evaluation``: a started-later RunEvaluation, or None)."""
     with timer("init"):
         backend.init(cfg.run.arch)
     recon = Reconstructor(cfg)
@@ -276,6 +288,9 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
             f"{len(voxels['ijk'])} voxels were observed but no cell has all 8 corners with weight >= "
             f"mesh.min_weight = {cfg.mesh.min_weight}, so there is no surface to mesh; lower "
             "mesh.min_weight or add frames. No mesh was written.")
+    if evaluation is not None:  # the ground truth and the TSDF mesh, beside the posterior
+        evaluation.start(recon.origin)
+        evaluation.add_tsdf(mesh)
     post = post_mesh = None
     if cfg.run.stages == "full":
         wait0 = reader.wait_s
@@ -293,24 +308,8 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
         with timer("mesh"):
             post_mesh = post.extract_mesh(local=True)  # step 7
     timer.seconds["read_frames"] = round(reader.wait_s, 4)  # time spent waiting for frames
-    metrics, distances = {}, {}
-    uncertainty = band_unc = None
-    if gt is not None:
-        from ..evaluation.metrics import (band_uncertainty, metrics_from_distances,
-                                          surface_distances_many, vertex_uncertainty)
-
-        e = cfg.eval
-        with timer("metrics"):
-            gt_local = mesh_in_local(gt, recon.origin)
-            named = [(n, m) for n, m in (("tsdf_mesh.ply", mesh), ("mesh.ply", post_mesh))
-                     if m is not None]
-            found = surface_distances_many([m for _, m in named], gt_local, e.n_samples, e.seed)
-            for (name, m), d in zip(named, found):
-                distances[name] = d
-                metrics[name] = metrics_from_distances(d, e.thresholds_mm, len(m.faces))
-            if post is not None:
-                uncertainty = vertex_uncertainty(post_mesh, gt_local, e.vertex_sigma)
-                band_unc = band_uncertainty(post, gt, e.near_voxels, e.seed)
+    if evaluation is not None and post is not None:
+        evaluation.add_posterior(post, post_mesh)  # measured while the files are written
     with timer("write"):
         colors = mesh.visual.vertex_colors[:, :3] if cfg.tsdf.integrate_rgb else None
         write_mesh_ply(out / "tsdf_mesh.ply", mesh.vertices, mesh.faces, vertex_colors=colors,
@@ -334,6 +333,18 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                            vertex_colors=post_colors, origin=recon.origin)
             write_npz(out / "band.npz", **post.band_arrays())
         save_config(cfg, out / "config.toml")
+    metrics, distances, judged = {}, {}, {}
+    if evaluation is not None:
+        from ..evaluation.metrics import metrics_from_distances
+
+        with timer("metrics"):
+            judged = evaluation.results()
+            for name, m in (("tsdf_mesh.ply", mesh), ("mesh.ply", post_mesh)):
+                if m is not None:
+                    distances[name] = judged["distances"][name]
+                    metrics[name] = metrics_from_distances(distances[name],
+                                                           cfg.eval.thresholds_mm, len(m.faces))
+    uncertainty, band_unc = judged.get("uncertainty"), judged.get("band_uncertainty")
     report = {
         "status": "complete",
         "bftaichi_version": __version__,
@@ -395,7 +406,8 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
         from .plots import write_run_plots
 
         with timer("plots"):
-            write_run_plots(report, out, post=post, gt=gt, distances=distances)
+            write_run_plots(report, out, post=post, gt=gt, distances=distances,
+                            vertex_errors=judged.get("vertex_errors"))
         report["seconds"]["plots"] = timer.seconds["plots"]
     if cfg.run.preview:
         from .viz import write_preview

@@ -229,7 +229,8 @@ def _plot_pcg_residual(solver: dict, report: dict, path: Path) -> Path:
 
 
 def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None,
-                    distances: dict | None = None) -> list[Path]:
+                    distances: dict | None = None,
+                    vertex_errors: np.ndarray | None = None) -> list[Path]:
     """Write the diagnostic PNGs of the run in ``out_dir`` into ``out_dir / "plots"``; return
     their paths, in the order of the module's list (plots whose inputs are absent are skipped).
 
@@ -243,13 +244,17 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
             F-score and calibration plots; None skips them.
         distances: ``{mesh name: surface_distances(...)}`` the run already computed for its
             metrics (same ``eval.n_samples`` and seed); default: computed here.
+        vertex_errors: the exact errors of ``mesh.ply``'s vertices the run already computed
+            for its ``uncertainty`` (:func:`~bftaichi.evaluation.metrics.vertex_errors`, in
+            the vertices' order); default: computed here from ``gt``.
 
     Raises:
         BftaichiError naming the missing files when ``out_dir`` does not hold the run, or when
         ``report`` is not a run's report.
     """
     from ..io import ensure_out_dir, read_mesh_ply
-    from ..evaluation.metrics import load_mesh, surface_distances, vertex_errors
+    from ..evaluation.metrics import load_mesh, surface_distances
+    from ..evaluation.metrics import vertex_errors as exact_errors
 
     out = Path(out_dir)
     if not isinstance(report, dict) or not {"scene", "tsdf", "config", "solver"} <= set(report):
@@ -285,8 +290,10 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
                                              plots / "sigma_histogram.png"))
         pairs = None
         if gt is not None and attrs.get("sigma") is not None and len(attrs["sigma"]) >= 2:
-            v, _, _ = read_mesh_ply(out / "mesh.ply")
-            pairs = vertex_errors(v, gt), np.asarray(attrs["sigma"], np.float64)
+            if vertex_errors is None or len(vertex_errors) != len(attrs["sigma"]):
+                v, _, _ = read_mesh_ply(out / "mesh.ply")
+                vertex_errors = exact_errors(v, gt)
+            pairs = np.asarray(vertex_errors, np.float64), np.asarray(attrs["sigma"], np.float64)
         if pairs is not None:
             written.append(_plot_calibration(*pairs, report, plots / "calibration.png"))
         if report["solver"]["map"].get("residual_history"):
