@@ -16,6 +16,7 @@ from pathlib import Path
 
 import click
 
+from .process import freeze_heap, quick_exit
 from .errors import BftaichiError
 from .running.summary import print_ranking as _print_ranking
 from .running.summary import print_scan_summary as _print_scan_summary
@@ -52,21 +53,6 @@ STRICT_HELP = ("Refuse input that fails a plausibility check (8-bit depth, depth
                "depth range, depth scale off by 10, poses given as T_C_W, image size against "
                "K, GPU backend fallen back to the CPU: otherwise warnings) and a MAP solve that "
                "does not converge (otherwise the mesh is flagged): exit 2, no mesh written.")
-
-
-def _freeze_heap() -> None:
-    """Freeze the imports' objects (~140k), so the collections that free Taichi's compiling calls
-    scan only the run's (0.09 s -> 2 us each; the CLI only). Unfrozen at exit: Taichi writes
-    its offline cache when the last collection frees its program (tests/test_cli.py)."""
-    import atexit
-    import gc
-
-    import taichi  # noqa: F401  the largest of the run's imports, loaded lazily otherwise
-
-    from .running import pipeline  # noqa: F401
-
-    gc.freeze()
-    atexit.register(gc.unfreeze)
 
 
 @contextlib.contextmanager
@@ -118,7 +104,7 @@ def run(scene, out, sets, arch, overwrite, quiet, verbose, strict):
 
     cfg = load_config(scene, _overrides(arch, sets) + (["run.strict=true"] if strict else []))
     out = Path(out or Path("out") / cfg.scene.name)
-    _freeze_heap()
+    freeze_heap()
     report = run_pipeline(cfg, out, overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(out, report, verbose)
@@ -172,7 +158,7 @@ def fuse(data_dir, fmt, voxel, trunc, frames, depth_max, gt_mesh, depth_scale, p
         extra.append("run.strict=true")
     cfg = load_config(None, _dataset_overrides(data_dir, fmt, voxel, trunc, frames, depth_max,
                                                gt_mesh) + extra + _overrides(arch, sets))
-    _freeze_heap()
+    freeze_heap()
     report = run_pipeline(cfg, Path(out), overwrite=overwrite, progress=not quiet)
     if not quiet:
         _print_summary(Path(out), report, verbose)
@@ -596,5 +582,11 @@ def main(argv=None) -> int:
     return rc if isinstance(rc, int) else 0  # a command's own exit code (batch: 1 = a run failed)
 
 
+def console() -> None:
+    """The ``bftaichi`` command: :func:`main`, then :func:`~bftaichi.process.quick_exit`. An
+    exception :func:`main` does not handle (a bug) ends the process the usual way."""
+    quick_exit(main())
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console()

@@ -394,3 +394,20 @@ def test_the_command_line_fills_taichis_offline_cache(tmp_path):
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert sum(1 for p in cache.rglob("*") if p.is_file()) > 0
+
+
+def test_the_command_keeps_its_exit_code_and_output_through_the_quick_exit(tmp_path):
+    """The console script ends with os._exit (bftaichi.process.quick_exit): its exit code, a
+    refusal's message on stderr and the results on stdout must survive it, piped."""
+    import subprocess
+    import sys
+
+    missing = tmp_path / "missing.toml"
+    done = subprocess.run([sys.executable, "-m", "bftaichi.cli", "run", str(missing), "--out",
+                           str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2
+    assert "error:" in done.stderr and "missing.toml" in done.stderr
+    assert not (tmp_path / "out").exists()
+    done = subprocess.run([sys.executable, "-m", "bftaichi.cli", "--help"], capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0 and "Quick start" in done.stdout
