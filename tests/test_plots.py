@@ -193,3 +193,15 @@ def test_the_reports_metrics_are_those_of_its_outputs(full_run):
             ranked = key in ("spearman", "ause", "sparsification", "top10_ratio")
             assert np.allclose(got[key], want[key], rtol=1e-2 if ranked else 1e-5,
                                atol=1e-9), key
+
+
+def test_a_large_ground_truth_waits_for_the_posterior_with_the_same_report(
+        full_run, tmp_path_factory, monkeypatch):
+    """The band's signed distance of a ground truth too large to prepare beside the posterior
+    (bftaichi.running.evaluation.AHEAD_SAMPLES) is prepared after it: the same numbers."""
+    import bftaichi.running.evaluation as evaluation
+
+    monkeypatch.setattr(evaluation, "AHEAD_SAMPLES", 0)
+    report, _, _ = _tiny_run(tmp_path_factory, "late")
+    for part in ("metrics", "uncertainty", "band_uncertainty"):
+        assert report[part] == full_run[0][part], part

@@ -29,6 +29,11 @@ import numpy as np
 
 __all__ = ["RunEvaluation"]
 
+#: The band's signed distance is prepared beside the posterior only up to this many samples of
+#: the ground truth (every voxel / 4: ~60 MB with its k-d tree; the default scene's 0.25 M):
+#: beyond, it would add to the solve's peak memory, so it waits until the posterior is solved.
+AHEAD_SAMPLES = 1_000_000
+
 
 def _own_mesh(mesh):
     """A private copy of ``mesh``'s vertices and faces (no attributes, no caches shared)."""
@@ -77,7 +82,9 @@ class RunEvaluation:
         gt_local = mesh_in_local(self.gt, origin)
         target = SampledSurface(gt_local, self.cfg.n_samples, self.cfg.seed)
         target.index()
-        sdf = band_sdf(self.gt, origin, self.voxel_size_m, self.cfg.seed)
+        sdf = None  # a large ground truth's band SDF waits for the posterior to free its memory
+        if self.gt.area / (self.voxel_size_m / 4) ** 2 <= AHEAD_SAMPLES:
+            sdf = band_sdf(self.gt, origin, self.voxel_size_m, self.cfg.seed)
         return gt_local, target, sdf
 
     def add_tsdf(self, mesh) -> None:
@@ -105,7 +112,7 @@ class RunEvaluation:
         if len(sigma) >= 2:  # vertex_uncertainty's rule, with the errors kept for the plots
             errors = vertex_errors(mesh.vertices, gt_local)
             uncertainty = uncertainty_metrics(errors, sigma, np.zeros_like(errors))
-        if not np.array_equal(np.asarray(post.origin, np.float64), self._origin):
+        if sdf is None or not np.array_equal(np.asarray(post.origin, np.float64), self._origin):
             sdf = band_sdf(self.gt, post.origin, self.voxel_size_m, self.cfg.seed)
         band = band_uncertainty(post, self.gt, self.cfg.near_voxels, self.cfg.seed, sdf)
         return errors, uncertainty, band
