@@ -96,21 +96,22 @@ class RunEvaluation:
         """Measure the posterior's mesh (local frame, with its vertex ``eval.vertex_sigma``
         attribute) and band against the ground truth: the distances on one thread, the vertex
         errors and the band on the other."""
-        own = _own_mesh(post_mesh)
+        own = _own_mesh(post_mesh)  # the distances' (one thread per object)
+        vertices = np.array(post_mesh.vertices, np.float64)  # the vertex errors'
         if self._plots:  # here, not beside the posterior: its front end needs the GIL
             self._pool.submit(_import_plotting)
         sigma = np.array(post_mesh.vertex_attributes[self.cfg.vertex_sigma], np.float64)
         distances = self._pool.submit(lambda: self._prepared.result()[1].distances(own))
-        self._post = (distances, self._pool.submit(self._judge_posterior, post, own, sigma))
+        self._post = (distances, self._pool.submit(self._judge_posterior, post, vertices, sigma))
 
-    def _judge_posterior(self, post, mesh, sigma):
+    def _judge_posterior(self, post, vertices, sigma):
         from ..evaluation.metrics import (band_sdf, band_uncertainty, uncertainty_metrics,
                                           vertex_errors)
 
         gt_local, _, sdf = self._prepared.result()
         errors = uncertainty = None
         if len(sigma) >= 2:  # vertex_uncertainty's rule, with the errors kept for the plots
-            errors = vertex_errors(mesh.vertices, gt_local)
+            errors = vertex_errors(vertices, gt_local)
             uncertainty = uncertainty_metrics(errors, sigma, np.zeros_like(errors))
         if sdf is None or not np.array_equal(np.asarray(post.origin, np.float64), self._origin):
             sdf = band_sdf(self.gt, post.origin, self.voxel_size_m, self.cfg.seed)
