@@ -10,8 +10,8 @@ one thread.
 
 import taichi as ti
 
-from .funcs import (block_is_planar, block_mean_depth, block_row, block_rows, cell_corners,
-                    corner, floor_i32, trilinear)
+from .funcs import (block_is_planar, block_mean_depth, block_row, cell_corners, corner,
+                    floor_i32, trilinear)
 from .layout import BLOCK, CENTRE
 from .lookup import band_index
 from .stencil import first_chunk, virtual_iterations
@@ -160,6 +160,7 @@ def fixed_point(x: ti.f64) -> ti.i64:
 _NDA = ti.types.ndarray
 
 SAMPLE_DROPPED, SAMPLE_ACCEPTED, SAMPLE_GATED = 0, 1, 2  # what look_up_sample finds
+UNSEARCHED = -2  # block cache: row not looked up yet (-1: looked up, not in the band)
 
 
 @ti.func
@@ -173,15 +174,20 @@ def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot
     mf]``. Returns SAMPLE_ACCEPTED, SAMPLE_DROPPED or SAMPLE_GATED."""
     c0 = floor_i32(o + z * m_ray)
     b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
-    # block cache per sample index j: sample j of the next pixels in the row is mostly in
-    # the same block (8 voxels = many pixels)
+    # block cache per sample index j: sample j of the next pixels in the row is mostly in the
+    # same block (8 voxels = many pixels). Block b + s (s in {0, 1}^3) is searched only when a
+    # cell first reaches it, from b's last voxel layer along s's axes (UNSEARCHED till then)
     cached = ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])
     if (b != cached).any():
-        rows = block_rows(block_keys, b)
         for t in ti.static(range(3)):
             blocks[vs, j + mf, t] = b[t]
         for t in ti.static(range(8)):
-            blocks[vs, j + mf, 3 + t] = rows[t]
+            blocks[vs, j + mf, 3 + t] = UNSEARCHED
+    last = (c0 - b * BLOCK) == BLOCK - 1
+    for t in range(8):
+        nb = b + ti.Vector([(t >> 2) & 1, (t >> 1) & 1, t & 1])  # block b + corner(t)
+        if ((nb == b) | last).all() and blocks[vs, j + mf, 3 + t] == UNSEARCHED:
+            blocks[vs, j + mf, 3 + t] = block_row(block_keys, nb[0], nb[1], nb[2])
     idx = cell_corners(block_table, c0, b, ti.Vector(
         [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
     gated = 0

@@ -88,7 +88,7 @@ def _cell_rows(block_keys: ti.template(), c0, b):
     """Table rows (8,) of the blocks ``b + corner(s)`` that the cell with base corner c0 (in
     block b) reaches, -1 for those it does not reach or that hold no band voxel. A cell leaves
     its block along an axis only from the block's last voxel layer, so most cells need one
-    binary search (kernels/observe.py :func:`_block_rows` searches all 8 for its row cache)."""
+    binary search (kernels/dataterm.py ``look_up_sample`` caches them the same way)."""
     last = (c0 - b * BLOCK) == BLOCK - 1
     rows = ti.Vector([-1, -1, -1, -1, -1, -1, -1, -1])
     for s in range(8):

@@ -4,7 +4,7 @@
 * :func:`block_key`, :func:`find_block`, :func:`block_row` -- the Taichi side of the block keys
   of :mod:`kernels.layout` and the binary search over sorted keys (the band lookup of
   :mod:`kernels.lookup`);
-* :func:`block_rows`, :func:`cell_corners` -- band indices of the 8 corners of a trilinear cell;
+* :func:`cell_corners` -- band indices of the 8 corners of a trilinear cell;
 * :func:`corner`, :func:`trilinear` -- the cell corners ``c = 4 ci + 2 cj + ck`` and their
   trilinear weights;
 * :func:`block_mean_depth`, :func:`block_is_planar` -- the mean depth of a k x k block of pixels
@@ -63,20 +63,10 @@ def corner(c: int) -> tuple[int, int, int]:
 
 
 @ti.func
-def block_rows(block_keys: ti.template(), b):
-    """Table rows (8,) int32 of blocks ``b + corner(s)``, s = 0..7 (-1: not in the band): every
-    block a cell with its base corner in block b can reach."""
-    rows = ti.Vector([-1, -1, -1, -1, -1, -1, -1, -1])
-    for s in range(8):
-        rows[s] = block_row(block_keys, b[0] + ((s >> 2) & 1), b[1] + ((s >> 1) & 1),
-                            b[2] + (s & 1))
-    return rows
-
-
-@ti.func
 def cell_corners(block_table: ti.template(), c0, b, rows):
     """Band indices (8,) int32 of the corners ``c0 + corner(c)`` of the cell with base corner
-    c0, given its block ``b = c0 // 8`` and :func:`block_rows` of b. Stops at the first corner
+    c0, given its block ``b = c0 // 8`` and the table rows (8,) of blocks ``b + corner(s)``
+    (-1: not in the band; at least those the cell reaches). Stops at the first corner
     outside the band (it and the later ones are -1). Table reads only; the run-time corner loop
     keeps the compiled code (and Taichi's compile time) small."""
     loc = c0 - b * BLOCK
