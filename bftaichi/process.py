@@ -33,9 +33,13 @@ def quick_exit(rc: int) -> None:
     and stderr are flushed, and the process ends with ``os._exit``, without the interpreter
     tearing down every module and Taichi's LLVM runtime object by object, which took 0.3-0.4 s
     of a warm default run (docs/measurements.md, "Start-up: what a warm run spends outside the
-    model"). Call it only when every file the command writes is complete and closed."""
+    model"). Call it only when every file the command writes is complete and closed. Under a
+    profiler or a tracer (``python -m cProfile``, coverage, a debugger) it exits the usual way,
+    so that they can write what they collected."""
     import atexit
 
+    if sys.getprofile() is not None or sys.gettrace() is not None:
+        sys.exit(rc)
     try:
         atexit._run_exitfuncs()
         if "taichi" in sys.modules:

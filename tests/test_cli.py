@@ -411,3 +411,16 @@ def test_the_command_keeps_its_exit_code_and_output_through_the_quick_exit(tmp_p
     done = subprocess.run([sys.executable, "-m", "bftaichi.cli", "--help"], capture_output=True,
                           text=True, timeout=300)
     assert done.returncode == 0 and "Quick start" in done.stdout
+
+
+def test_a_profiled_command_still_writes_its_profile(tmp_path):
+    """The quick exit steps aside under a profiler: ``python -m cProfile -o F -m bftaichi.cli``
+    must leave its profile F (os._exit would drop it)."""
+    import subprocess
+    import sys
+
+    prof = tmp_path / "cli.prof"
+    done = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(prof), "-m",
+                           "bftaichi.cli", "--help"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert prof.is_file() and prof.stat().st_size > 0
