@@ -10,10 +10,10 @@ one thread.
 
 import taichi as ti
 
-from .funcs import (block_is_planar, block_mean_depth, block_row, cell_corners, corner,
-                    floor_i32, trilinear)
+from .funcs import (block_is_planar, block_mean_depth, block_row, corner, floor_i32,
+                    trilinear)
 from .layout import BLOCK, CENTRE
-from .lookup import band_index
+from .lookup import SAMPLE_ACCEPTED, SAMPLE_GATED, band_index, look_up_sample
 from .stencil import first_chunk, virtual_iterations
 
 FRACTION_BITS = 32  # one maximal-weight contribution = 2^32 fixed-point units
@@ -158,61 +158,6 @@ def fixed_point(x: ti.f64) -> ti.i64:
 
 
 _NDA = ti.types.ndarray
-
-SAMPLE_DROPPED, SAMPLE_ACCEPTED, SAMPLE_GATED = 0, 1, 2  # what look_up_sample finds
-UNSEARCHED = -2  # block cache: row not looked up yet (-1: looked up, not in the band)
-
-
-@ti.func
-def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot_ray: ti.f64,
-                   spacing: ti.f64, gate: ti.f64, block_keys: ti.template(),
-                   block_table: ti.template(), ref: ti.template(), scratch: ti.template(),
-                   blocks: ti.template()) -> ti.i32:
-    """Sample j (depth ``z`` > 0) of pixel row ``vs``: its cell's corners (band indices) into
-    ``scratch[vs, j + mf]``, corner 7 -1 where one is outside the band, -2 where the side gate
-    drops it (kernels.observe, steps 3 and 3b), through the row's block cache ``blocks[vs, j +
-    mf]``. Returns SAMPLE_ACCEPTED, SAMPLE_DROPPED or SAMPLE_GATED."""
-    c0 = floor_i32(o + z * m_ray)
-    b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
-    # block cache per sample index j: sample j of the next pixels in the row is mostly in the
-    # same block (8 voxels = many pixels). Block b + s (s in {0, 1}^3) is searched only when a
-    # cell first reaches it, from b's last voxel layer along s's axes (UNSEARCHED till then)
-    cached = ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])
-    if (b != cached).any():
-        for t in ti.static(range(3)):
-            blocks[vs, j + mf, t] = b[t]
-        for t in ti.static(range(8)):
-            blocks[vs, j + mf, 3 + t] = UNSEARCHED
-    last = (c0 - b * BLOCK) == BLOCK - 1
-    for t in range(8):
-        nb = b + ti.Vector([(t >> 2) & 1, (t >> 1) & 1, t & 1])  # block b + corner(t)
-        if ((nb == b) | last).all() and blocks[vs, j + mf, 3 + t] == UNSEARCHED:
-            blocks[vs, j + mf, 3 + t] = block_row(block_keys, nb[0], nb[1], nb[2])
-    idx = cell_corners(block_table, c0, b, ti.Vector(
-        [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
-    gated = 0
-    if idx[7] >= 0 and gate > 0:
-        # step 3b: the reference SDF interpolated at the sample must not put it on the other
-        # side of the surface by more than the gate
-        g = o + z * m_ray
-        a = trilinear(g - ti.cast(c0, ti.f64))
-        t_ref = ti.f64(0.0)
-        for c in ti.static(range(8)):
-            t_ref += a[c] * ti.cast(ref[idx[c]], ti.f64)
-        y = ti.cast(j, ti.f64) * spacing * n_dot_ray
-        # NaN (a corner without reference) fails both tests: kept
-        if (y < 0 and t_ref > gate) or (y > 0 and t_ref < -gate):
-            gated = 1
-    for c in ti.static(range(8)):
-        scratch[vs, j + mf, c] = idx[c]
-    status = SAMPLE_DROPPED
-    if gated:
-        scratch[vs, j + mf, 7] = -2
-        status = SAMPLE_GATED
-    elif idx[7] >= 0:
-        status = SAMPLE_ACCEPTED
-    return status
-
 
 @ti.func
 def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.template(),

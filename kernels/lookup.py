@@ -9,12 +9,15 @@ The band's voxels are grouped by their 8^3 block (the same blocks as the TSDF):
 
 A lookup is a binary search over the blocks (log2 B steps, B ~ N / 100) plus one table read, with
 no hashing races: :func:`band_index` is a pure read, deterministic and safe in any kernel.
+:func:`look_up_sample` finds the 8 corners of an observation sample's cell through a block cache
+per image row and sample index, so that most samples need no search (the observation kernels of
+:mod:`kernels.dataterm`).
 """
 
 import numpy as np
 import taichi as ti
 
-from .funcs import block_row
+from .funcs import block_row, cell_corners, floor_i32, trilinear
 from .layout import BLOCK, BLOCK_VOXELS, block_key_np, decode_keys
 
 
@@ -60,3 +63,61 @@ def band_ijk_from_table(block_keys: np.ndarray, block_table: np.ndarray,
     ijk = np.empty((n_voxels, 3), np.int32)
     ijk[idx] = blocks * BLOCK + local
     return ijk
+
+
+SAMPLE_DROPPED, SAMPLE_ACCEPTED, SAMPLE_GATED = 0, 1, 2  # what look_up_sample finds
+UNSEARCHED = -2  # block cache: row not looked up yet (-1: looked up, not in the band)
+
+
+@ti.func
+def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot_ray: ti.f64,
+                   spacing: ti.f64, gate: ti.f64, block_keys: ti.template(),
+                   block_table: ti.template(), ref: ti.template(), scratch: ti.template(),
+                   blocks: ti.template()) -> ti.i32:
+    """Sample j (depth ``z`` > 0) of pixel row ``vs``: its cell's corners (band indices) into
+    ``scratch[vs, j + mf]``, corner 7 -1 where one is outside the band, -2 where the side gate
+    drops it (kernels.observe, steps 3 and 3b), through the row's block cache ``blocks[vs, j +
+    mf]``. Returns SAMPLE_ACCEPTED, SAMPLE_DROPPED or SAMPLE_GATED."""
+    c0 = floor_i32(o + z * m_ray)
+    b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
+    # block cache per sample index j: sample j of the next pixels in the row is mostly in the
+    # same block (8 voxels = many pixels); else sample j - 1's entry, which this ray mostly
+    # just filled. Block b + s (s in {0, 1}^3) is searched only when a cell first reaches it,
+    # from b's last voxel layer along s's axes (UNSEARCHED till then)
+    if (b != ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])).any():
+        jp = ti.max(j + mf - 1, 0)  # sample j - 1's entry (when j > -mf)
+        prev = ti.Vector([blocks[vs, jp, t] for t in ti.static(range(3))])
+        same = j > -mf and (b == prev).all()
+        for t in ti.static(range(3)):
+            blocks[vs, j + mf, t] = b[t]
+        for t in ti.static(range(3, 11)):
+            blocks[vs, j + mf, t] = ti.select(same, blocks[vs, jp, t], UNSEARCHED)
+    last = (c0 - b * BLOCK) == BLOCK - 1
+    for t in range(8):
+        nb = b + ti.Vector([(t >> 2) & 1, (t >> 1) & 1, t & 1])  # block b + corner(t)
+        if ((nb == b) | last).all() and blocks[vs, j + mf, 3 + t] == UNSEARCHED:
+            blocks[vs, j + mf, 3 + t] = block_row(block_keys, nb[0], nb[1], nb[2])
+    idx = cell_corners(block_table, c0, b, ti.Vector(
+        [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
+    gated = 0
+    if idx[7] >= 0 and gate > 0:
+        # step 3b: the reference SDF interpolated at the sample must not put it on the other
+        # side of the surface by more than the gate
+        g = o + z * m_ray
+        a = trilinear(g - ti.cast(c0, ti.f64))
+        t_ref = ti.f64(0.0)
+        for c in ti.static(range(8)):
+            t_ref += a[c] * ti.cast(ref[idx[c]], ti.f64)
+        y = ti.cast(j, ti.f64) * spacing * n_dot_ray
+        # NaN (a corner without reference) fails both tests: kept
+        if (y < 0 and t_ref > gate) or (y > 0 and t_ref < -gate):
+            gated = 1
+    for c in ti.static(range(8)):
+        scratch[vs, j + mf, c] = idx[c]
+    status = SAMPLE_DROPPED
+    if gated:
+        scratch[vs, j + mf, 7] = -2
+        status = SAMPLE_GATED
+    elif idx[7] >= 0:
+        status = SAMPLE_ACCEPTED
+    return status
