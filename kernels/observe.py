@@ -96,17 +96,17 @@ Layout of the accumulators: ``S_acc`` (parts, N, 14) int64, column ``o - 13`` fo
 
 Cost (one launch per pyramid level, each thread taking every parts-th pixel row): per pixel a
 normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 adds (the upper
-half of ``a a^T`` and ``a y``). The lookup reads the block table through a per-row cache of the
-8 blocks around sample j's block (one cache per sample index j: sample j of the next pixels of
-a row stays in the same blocks for many pixels), so binary searches are rare. Measured on
-redkitchen frames at 2 cm (tools/bench_pipeline.py has the current figures): int64 atomics cost
-~20 cycles each, so the per-thread copies took the pass from ~520 to ~150 ns per sample at
-stride 1 (the row loop had run on one thread: Taichi's CPU backend gives loops of fewer than
-512 iterations to one thread), and super-pixels cut the samples ~12x (a super-pixel sample
-costs ~2x a pixel's: its neighbours' cells are not in the cache). Measured and not kept: a
-dense block grid instead of the binary search (no gain beyond the noise), summing the samples
-that fall into a row's previous cell before the adds (-10 % at stride 1, slower at stride 2,
-3x the compile time), an unrolled corner loop (no gain).
+half of ``a a^T`` and ``a y``). The lookup (:func:`kernels.lookup.look_up_sample`) reads the
+block table through a per-row cache of the blocks around sample j's block, searching a block only
+when a cell reaches it (perf put 35 % of the pass in the search when a miss searched all 8).
+Measured on redkitchen frames at 2 cm (tools/bench_pipeline.py has the current figures): int64
+atomics cost ~20 cycles each, so the per-thread copies took the pass from ~520 to ~150 ns per
+sample at stride 1 (the row loop had run on one thread: Taichi's CPU backend gives loops of
+fewer than 512 iterations to one thread), and super-pixels cut the samples ~12x (a super-pixel
+sample costs ~2x a pixel's: its neighbours' cells are not in the cache). Measured and not kept:
+a dense block grid instead of the binary search (within the noise of one bench_observe run,
+which can hide 20 %), summing the samples in a row's previous cell before the adds (-10 % at
+stride 1, slower at stride 2, 3x the compile time), an unrolled corner loop (no gain).
 """
 
 import math
