@@ -104,3 +104,31 @@ def test_every_tool_measures_its_own_checkout():
                    for line in lines):
             unguarded.append(path.relative_to(ROOT).as_posix())
     assert not unguarded, f"import bftaichi before putting this checkout on sys.path: {unguarded}"
+
+
+def test_a_tools_child_process_imports_the_tools_checkout_from_any_directory(tmp_path):
+    """tools/checkout.py's child_env: a child ``python -m`` started in another directory that
+    holds a bftaichi of its own (another checkout) still imports the tool's checkout."""
+    import os
+    import subprocess
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        import checkout
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    decoy = tmp_path / "bftaichi"
+    decoy.mkdir()
+    (decoy / "__init__.py").write_text("raise ImportError('the working directory was imported')\n")
+    env = checkout.child_env()
+    env.pop("PYTHONSAFEPATH")
+    shadowed = subprocess.run([sys.executable, "-c", "import bftaichi"], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120)
+    assert shadowed.returncode != 0  # the decoy works: without the setting it is imported
+    done = subprocess.run([sys.executable, "-c", "import bftaichi; print(bftaichi.__file__)"],
+                          cwd=tmp_path, env=checkout.child_env(), capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert os.path.realpath(done.stdout.strip()) == os.path.realpath(ROOT / "bftaichi" /
+                                                                      "__init__.py")

@@ -24,7 +24,14 @@ if str(ROOT) not in sys.path:
 
 def child_env(env: dict | None = None) -> dict:
     """``env`` (default: this process's environment) with this checkout first on
-    ``PYTHONPATH``: a child Python (``python -m bftaichi.cli``, ``python -c``) imports it."""
+    ``PYTHONPATH``: a child Python (``python -m bftaichi.cli``, ``python -c``) imports it.
+
+    ``PYTHONSAFEPATH=1`` (Python 3.11) keeps the child from putting its working directory
+    first on ``sys.path``, ahead of ``PYTHONPATH``: run from another checkout (``python
+    ../before/tools/bench_pipeline.py`` in the main one), ``python -m bftaichi.cli`` would
+    otherwise import the working directory's bftaichi, and both sides of the comparison would
+    measure it (tests/test_layout.py)."""
     env = dict(os.environ if env is None else env)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+    env["PYTHONSAFEPATH"] = "1"
     return env
