@@ -132,3 +132,8 @@ def test_a_tools_child_process_imports_the_tools_checkout_from_any_directory(tmp
     assert done.returncode == 0, done.stderr
     assert os.path.realpath(done.stdout.strip()) == os.path.realpath(ROOT / "bftaichi" /
                                                                       "__init__.py")
+    # a tool started as a child (bench_pipeline.py runs itself for Open3D) finds checkout.py
+    done = subprocess.run([sys.executable, str(ROOT / "tools" / "bench_pipeline.py"), "--help"],
+                          cwd=tmp_path, env=checkout.child_env(), capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr

@@ -32,6 +32,7 @@ def child_env(env: dict | None = None) -> dict:
     otherwise import the working directory's bftaichi, and both sides of the comparison would
     measure it (tests/test_layout.py)."""
     env = dict(os.environ if env is None else env)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
-    env["PYTHONSAFEPATH"] = "1"
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), str(ROOT / "tools"),
+                                                    env.get("PYTHONPATH", "")) if p)
+    env["PYTHONSAFEPATH"] = "1"  # (nor the script's directory: tools/ is on PYTHONPATH instead)
     return env
