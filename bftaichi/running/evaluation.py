@@ -9,11 +9,11 @@ only part of the time (a warm default run: 2.6 s of wall time, 3.1 s of CPU time
 the band's signed distance) and measures the TSDF mesh on worker threads while the posterior is
 solved, and measures the posterior's mesh and band on two threads (and imports the plotting
 library) while the run writes its files. The k-d tree queries and NumPy release the GIL.
-Measured (``python tools/bench_startup.py --repeats 3``, warm runs of the default scene, the
-commit before this module and this one, twice, one after the other): medians 5.94 and 5.52 s
-before, 5.53 and 5.63 s after; preparing the ground truth only after the posterior instead:
-6.21 s against 5.73 s (``--ab`` in one run), importing matplotlib beside the posterior (its
-Taichi front end needs the GIL too): 5.84 s against 5.61 s.
+Measured (``python tools/bench_startup.py --repeats 3 --ab`` of a temporary switch, warm runs
+of the default scene, medians): preparing the ground truth only after the posterior instead,
+6.21 s against 5.73 s; importing matplotlib beside the posterior (its Taichi front end needs
+the GIL too), 5.84 s against 5.61 s (docs/measurements.md, "Start-up: what a warm run spends
+outside the model").
 
 The values are those of the functions it calls, with the same arguments and seeds (the same
 bytes in report.json and the plots); only the order in which they are computed changes. Every
