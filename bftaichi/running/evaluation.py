@@ -98,11 +98,11 @@ class RunEvaluation:
         errors and the band on the other."""
         own = _own_mesh(post_mesh)  # the distances' (one thread per object)
         vertices = np.array(post_mesh.vertices, np.float64)  # the vertex errors'
-        if self._plots:  # here, not beside the posterior: its front end needs the GIL
-            self._pool.submit(_import_plotting)
         sigma = np.array(post_mesh.vertex_attributes[self.cfg.vertex_sigma], np.float64)
         distances = self._pool.submit(lambda: self._prepared.result()[1].distances(own))
         self._post = (distances, self._pool.submit(self._judge_posterior, post, vertices, sigma))
+        if self._plots:  # by the first thread free (not beside the posterior: its Taichi front
+            self._pool.submit(_import_plotting)  # end needs the GIL too)
 
     def _judge_posterior(self, post, vertices, sigma):
         from ..evaluation.metrics import (band_sdf, band_uncertainty, uncertainty_metrics,
