@@ -16,8 +16,8 @@ from pathlib import Path
 
 import click
 
-from .process import freeze_heap, quick_exit
 from .errors import BftaichiError
+from .process import freeze_heap, quick_exit
 from .running.summary import print_ranking as _print_ranking
 from .running.summary import print_scan_summary as _print_scan_summary
 from .running.summary import print_summary as _print_summary
