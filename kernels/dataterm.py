@@ -161,7 +161,7 @@ _NDA = ti.types.ndarray
 
 @ti.func
 def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.template(),
-                 block_keys: ti.template(), block_table: ti.template(), ref: ti.template(),
+                 block_hash: ti.template(), block_table: ti.template(), ref: ti.template(),
                  stride: ti.i32, m: ti.i32, mf: ti.i32, counts: ti.template(),
                  scratch: ti.template(), blocks: ti.template(), sink: ti.template(),
                  mode: ti.template(), part: ti.i32):
@@ -231,7 +231,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                                 look = 0
                     if look:
                         status = look_up_sample(vs, j, mf, z, o, m_ray, n_dot_ray, spacing, gate,
-                                                block_keys, block_table, ref, scratch, blocks)
+                                                block_hash, block_table, ref, scratch, blocks)
                         if status == SAMPLE_GATED:
                             n_gate += 1
                         elif status == SAMPLE_ACCEPTED:
@@ -337,7 +337,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
 @ti.kernel
 def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
                   prm: _NDA(dtype=ti.f64, ndim=1),
-                   block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
+                   block_hash: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                    ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                    S_acc: _NDA(dtype=ti.i64, ndim=3), h_acc: _NDA(dtype=ti.i64, ndim=2),
                    counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
@@ -353,7 +353,7 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
             for q in range((n_rows - part + n_parts - 1) // n_parts):  # rows p, p + n_parts, ...
-                observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
+                observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
                             stride, m, mf, counts, scratch, blocks, (S_acc, h_acc),
                             MODE_ACCUMULATE, part)
 
@@ -361,7 +361,7 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
 @ti.kernel
 def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
                  prm: _NDA(dtype=ti.f64, ndim=1),
-                  block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
+                  block_hash: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                   ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                   counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
                   blocks: _NDA(dtype=ti.i32, ndim=3), row_idx: _NDA(dtype=ti.i32, ndim=2),
@@ -373,7 +373,7 @@ def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
     written by one thread, no atomics)."""
     ti.loop_config(block_dim=4)
     for vs in range((depth.shape[0] + stride - 1) // stride):
-        observe_row(vs, depth, mask, prm, block_keys, block_table, ref, stride, m, mf, counts,
+        observe_row(vs, depth, mask, prm, block_hash, block_table, ref, stride, m, mf, counts,
                     scratch, blocks, (row_idx, row_a, row_y, row_w, row_z, row_status), MODE_ROWS,
                     0)
 
@@ -523,7 +523,7 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
 @ti.kernel
 def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
                  prm: _NDA(dtype=ti.f64, ndim=1),
-                 block_keys: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
+                 block_hash: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                  ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                  mu: _NDA(dtype=ti.f32, ndim=1), var: _NDA(dtype=ti.f32, ndim=1),
                  R_acc: _NDA(dtype=ti.i64, ndim=3), counts: _NDA(dtype=ti.i64, ndim=2),
@@ -540,6 +540,6 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
             for q in range((n_rows - part + n_parts - 1) // n_parts):
-                observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
+                observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
                             stride, m, mf, counts, scratch, blocks, (mu, var, R_acc),
                             MODE_MISFIT, part)

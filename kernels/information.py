@@ -18,7 +18,7 @@ _NDA = ti.types.ndarray
 
 @ti.kernel
 def information_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
-                      prm: _NDA(dtype=ti.f64, ndim=1), block_keys: _NDA(dtype=ti.i64, ndim=1),
+                      prm: _NDA(dtype=ti.f64, ndim=1), block_hash: _NDA(dtype=ti.i64, ndim=1),
                       block_table: _NDA(dtype=ti.i32, ndim=2), ref: _NDA(dtype=ti.f32, ndim=1),
                       stride: ti.i32, m: ti.i32, mf: ti.i32, D_acc: _NDA(dtype=ti.i64, ndim=2),
                       counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
@@ -32,6 +32,6 @@ def information_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8,
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
             for q in range((n_rows - part + n_parts - 1) // n_parts):
-                observe_row(part + q * n_parts, depth, mask, prm, block_keys, block_table, ref,
+                observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
                             stride, m, mf, counts, scratch, blocks, (D_acc,), MODE_DIAGONAL,
                             part)

@@ -17,7 +17,7 @@ per image row and sample index, so that most samples need no search (the observa
 import numpy as np
 import taichi as ti
 
-from .funcs import block_row, cell_corners, floor_i32, trilinear
+from .funcs import block_key, block_row, cell_corners, floor_i32, trilinear
 from .layout import BLOCK, BLOCK_VOXELS, block_key_np, decode_keys
 
 
@@ -46,6 +46,58 @@ def band_index(block_keys: ti.template(), block_table: ti.template(), i: ti.i32,
     return out
 
 
+HASH_MULTIPLIER = 0x9E3779B97F4A7C15  # 2^64 / golden ratio: Fibonacci hashing of the keys
+
+
+def build_block_hash(block_keys: np.ndarray) -> np.ndarray:
+    """The block keys as an open-addressing hash table, for :func:`hashed_block_row` (an O(1)
+    lookup where :func:`kernels.funcs.block_row` searches). (2 + 2P,) int64: ``[0]`` =
+    ``log2 P``, then slot s at ``[2 + 2s]`` (a key, -1 where empty) and ``[3 + 2s]`` (its row
+    in the block table); ``P`` the power of two >= 2 B (at most half full). A key goes to slot
+    ``(key * HASH_MULTIPLIER mod 2^64) >> (64 - log2 P)``, or the next free one after it
+    (linear probing, wrapping around): in rounds, every key not yet placed tries its next slot
+    and, where several try one free slot, the smallest key takes it. A key then sits behind
+    occupied slots only, so a probe from its home slot reaches it before an empty one. The
+    same table every time."""
+    keys = np.asarray(block_keys, np.int64).ravel()
+    bits = max(1, int(2 * len(keys) - 1).bit_length())
+    size = 1 << bits
+    slot_key = np.full(size, -1, np.int64)
+    slot_row = np.zeros(size, np.int64)
+    pos = ((keys.astype(np.uint64) * np.uint64(HASH_MULTIPLIER))
+           >> np.uint64(64 - bits)).astype(np.int64)
+    pending = np.argsort(keys, kind="stable")  # rows in key order: the smaller key first
+    while len(pending):
+        cand = pos[pending]
+        free = slot_key[cand] == -1
+        slots, first = np.unique(cand[free], return_index=True)
+        won = pending[free][first]
+        slot_key[slots], slot_row[slots] = keys[won], won
+        pending = pending[~np.isin(pending, won)]
+        pos[pending] = (pos[pending] + 1) & (size - 1)
+    table = np.empty(2 + 2 * size, np.int64)
+    table[0], table[1] = bits, 0
+    table[2::2], table[3::2] = slot_key, slot_row
+    return table
+
+
+@ti.func
+def hashed_block_row(block_hash: ti.template(), bi: ti.i32, bj: ti.i32, bk: ti.i32) -> ti.i32:
+    """Row of block (bi, bj, bk) in the block table, or -1: :func:`kernels.funcs.block_row`
+    through :func:`build_block_hash`'s table (read only)."""
+    key = block_key(ti.cast(bi, ti.i64), ti.cast(bj, ti.i64), ti.cast(bk, ti.i64))
+    bits = ti.cast(block_hash[0], ti.u64)
+    mask = (ti.i32(1) << ti.cast(bits, ti.i32)) - 1
+    s = ti.cast((ti.cast(key, ti.u64) * ti.u64(HASH_MULTIPLIER)) >> (ti.u64(64) - bits), ti.i32)
+    row = -1
+    while block_hash[2 + 2 * s] != -1:  # at most half full: an empty slot ends every probe
+        if block_hash[2 + 2 * s] == key:
+            row = ti.cast(block_hash[3 + 2 * s], ti.i32)
+            break
+        s = (s + 1) & mask
+    return row
+
+
 def band_ijk_from_table(block_keys: np.ndarray, block_table: np.ndarray,
                         n_voxels: int) -> np.ndarray:
     """Invert :func:`build_block_table`: voxel ``ijk`` (N, 3) int32 of every band index
@@ -71,7 +123,7 @@ UNSEARCHED = -2  # block cache: row not looked up yet (-1: looked up, not in the
 
 @ti.func
 def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot_ray: ti.f64,
-                   spacing: ti.f64, gate: ti.f64, block_keys: ti.template(),
+                   spacing: ti.f64, gate: ti.f64, block_hash: ti.template(),
                    block_table: ti.template(), ref: ti.template(), scratch: ti.template(),
                    blocks: ti.template()) -> ti.i32:
     """Sample j (depth ``z`` > 0) of pixel row ``vs``: its cell's corners (band indices) into
@@ -96,7 +148,7 @@ def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot
     for t in range(8):
         nb = b + ti.Vector([(t >> 2) & 1, (t >> 1) & 1, t & 1])  # block b + corner(t)
         if ((nb == b) | last).all() and blocks[vs, j + mf, 3 + t] == UNSEARCHED:
-            blocks[vs, j + mf, 3 + t] = block_row(block_keys, nb[0], nb[1], nb[2])
+            blocks[vs, j + mf, 3 + t] = hashed_block_row(block_hash, nb[0], nb[1], nb[2])
     idx = cell_corners(block_table, c0, b, ti.Vector(
         [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
     gated = 0

@@ -97,16 +97,14 @@ Layout of the accumulators: ``S_acc`` (parts, N, 14) int64, column ``o - 13`` fo
 Cost (one launch per pyramid level, each thread taking every parts-th pixel row): per pixel a
 normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 adds (the upper
 half of ``a a^T`` and ``a y``). The lookup (:func:`kernels.lookup.look_up_sample`) reads the
-block table through a per-row cache of the blocks around sample j's block, searching a block only
-when a cell reaches it (perf put 35 % of the pass in the search when a miss searched all 8).
-Measured on redkitchen frames at 2 cm (tools/bench_pipeline.py has the current figures): int64
-atomics cost ~20 cycles each, so the per-thread copies took the pass from ~520 to ~150 ns per
-sample at stride 1 (the row loop had run on one thread: Taichi's CPU backend gives loops of
-fewer than 512 iterations to one thread), and super-pixels cut the samples ~12x (a super-pixel
-sample costs ~2x a pixel's: its neighbours' cells are not in the cache). Measured and not kept:
-a dense block grid instead of the binary search (within the noise of one bench_observe run,
-which can hide 20 %), summing the samples in a row's previous cell before the adds (-10 % at
-stride 1, slower at stride 2, 3x the compile time), an unrolled corner loop (no gain).
+block table through a per-row cache of the blocks around sample j's block, looking a block up
+(hashed) only when a cell reaches it (perf put 35 % of the pass in binary searches of all 8).
+Measured on redkitchen frames at 2 cm: int64 atomics cost ~20 cycles each, so the per-thread
+copies took the pass from ~520 to ~150 ns per sample at stride 1 (the row loop had run on one
+thread: Taichi's CPU backend gives loops of fewer than 512 iterations to one thread), and
+super-pixels cut the samples ~12x (a super-pixel sample costs ~2x a pixel's). Measured and not kept:
+summing the samples in a row's previous cell before the adds (-10 % at stride 1, slower at
+stride 2, 3x the compile time), an unrolled corner loop (no gain).
 """
 
 import math
@@ -123,7 +121,7 @@ from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P
                        MISFIT_SCALE, estimate_normals, finalize_stencil, misfit_frame,
                        observe_frame, observe_rows, superpixels, window_sums)
 from .layout import BLOCK_VOXELS
-from .lookup import band_ijk_from_table
+from .lookup import band_ijk_from_table, build_block_hash
 from .stencil import free_compile_arguments, zeros_aligned
 
 def accumulator_parts() -> int:
@@ -251,6 +249,7 @@ class Observer:
             raise ValueError(f"Observer: block_keys {self.block_keys.shape} / block_table "
                              f"{self.block_table.shape} are not (B,) / (B, 512)")
         self.ijk = band_ijk_from_table(self.block_keys, self.block_table, self.n_voxels)
+        self.block_hash = build_block_hash(self.block_keys)  # the frame kernels' block lookup
         self.depth_model = (float(depth_a_m), float(depth_b), float(depth_z0_m), float(cos_min))
         self.sigma_pose_m = float(sigma_pose_m)
         self.sigma_model_m = float(sigma_model_m)
@@ -445,7 +444,7 @@ class Observer:
         frame = np.zeros(N_COUNTS, np.int64)
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
             if self.n_voxels:
-                observe_frame(image, mask, prm_l, self.block_keys, self.block_table,
+                observe_frame(image, mask, prm_l, self.block_hash, self.block_table,
                               self.reference, stride, self.m, self.mf, S_acc, h_acc,
                               counts, *scratch)
             frame += counts.sum(axis=0)
@@ -478,7 +477,7 @@ class Observer:
                     np.zeros(R), np.zeros(R, np.int32))
             counts = np.zeros((n_vs, N_COUNTS), np.int64)
             if self.n_voxels:
-                observe_rows(image, mask, prm_l, self.block_keys, self.block_table,
+                observe_rows(image, mask, prm_l, self.block_hash, self.block_table,
                              self.reference, stride, self.m, self.mf, counts,
                              *self._scratch(n_vs), *rows)
             total += counts.sum(axis=0)
@@ -517,7 +516,7 @@ class Observer:
         if not self.n_voxels:
             return
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
-            misfit_frame(image, mask, prm_l, self.block_keys, self.block_table, self.reference,
+            misfit_frame(image, mask, prm_l, self.block_hash, self.block_table, self.reference,
                          stride, self.m, self.mf, mu, var, self._R_acc, counts, *scratch)
 
     def _band_fields(self, mu, var) -> tuple[np.ndarray, np.ndarray]:
@@ -568,7 +567,7 @@ class Observer:
         D_acc = np.zeros((self.parts, max(self.n_voxels, 1)), np.int64)
         if self.n_voxels:
             for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
-                information_frame(image, mask, prm_l, self.block_keys, self.block_table,
+                information_frame(image, mask, prm_l, self.block_hash, self.block_table,
                                   self.reference, stride, self.m, self.mf, D_acc, counts,
                                   *scratch)
         return D_acc.sum(axis=0)[:self.n_voxels] / self.fixed_scale
