@@ -75,7 +75,8 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from .funcs import block_row, cell_corners, corner, floor_i32, trilinear
+from .funcs import (block_row, cell_corners, corner, corner_offset, floor_i32,
+                    reaches_block, trilinear)
 from .layout import BLOCK, BLOCK_VOXELS, KEY_BIAS, band_box
 from .lookup import build_block_table
 
@@ -86,15 +87,13 @@ UNOBSERVED = 1.0e6
 @ti.func
 def _cell_rows(block_keys: ti.template(), c0, b):
     """Table rows (8,) of the blocks ``b + corner(s)`` that the cell with base corner c0 (in
-    block b) reaches, -1 for those it does not reach or that hold no band voxel. A cell leaves
-    its block along an axis only from the block's last voxel layer, so most cells need one
-    binary search (kernels/dataterm.py ``look_up_sample`` caches them the same way)."""
-    last = (c0 - b * BLOCK) == BLOCK - 1
+    block b) reaches (:func:`kernels.funcs.reaches_block`), -1 for those it does not reach or
+    that hold no band voxel."""
     rows = ti.Vector([-1, -1, -1, -1, -1, -1, -1, -1])
     for s in range(8):
-        cs = ti.Vector([(s >> 2) & 1, (s >> 1) & 1, s & 1])
-        if ((cs == 0) | last).all():
-            rows[s] = block_row(block_keys, b[0] + cs[0], b[1] + cs[1], b[2] + cs[2])
+        if reaches_block(c0, b, s):
+            nb = b + corner_offset(s)
+            rows[s] = block_row(block_keys, nb[0], nb[1], nb[2])
     return rows
 
 

@@ -4,7 +4,8 @@
 * :func:`block_key`, :func:`find_block`, :func:`block_row` -- the Taichi side of the block keys
   of :mod:`kernels.layout` and the binary search over sorted keys (the band lookup of
   :mod:`kernels.lookup`);
-* :func:`cell_corners` -- band indices of the 8 corners of a trilinear cell;
+* :func:`reaches_block`, :func:`cell_corners` -- the blocks a trilinear cell reaches, and the
+  band indices of its 8 corners;
 * :func:`corner`, :func:`trilinear` -- the cell corners ``c = 4 ci + 2 cj + ck`` and their
   trilinear weights;
 * :func:`block_mean_depth`, :func:`block_is_planar` -- the mean depth of a k x k block of pixels
@@ -60,6 +61,22 @@ def block_row(block_keys: ti.template(), bi: ti.i32, bj: ti.i32, bk: ti.i32) -> 
 def corner(c: int) -> tuple[int, int, int]:
     """Offset (ci, cj, ck) in {0, 1}^3 of cell corner c = 4 ci + 2 cj + ck (compile time)."""
     return (c >> 2) & 1, (c >> 1) & 1, c & 1
+
+
+@ti.func
+def corner_offset(s: ti.i32):
+    """Offset (3,) int32 of cell corner (or neighbour block) s = 4 ci + 2 cj + ck at run time
+    (:func:`corner` at compile time)."""
+    return ti.Vector([(s >> 2) & 1, (s >> 1) & 1, s & 1])
+
+
+@ti.func
+def reaches_block(c0, b, s: ti.i32) -> ti.i32:
+    """1 if the cell with base corner c0 has a corner in block ``b + corner_offset(s)`` (b = c0
+    // 8): a cell leaves its block along an axis only from the block's last voxel layer, so
+    most cells reach block b alone and need one block lookup, not eight."""
+    last = (c0 - b * BLOCK) == BLOCK - 1
+    return ti.cast(((corner_offset(s) == 0) | last).all(), ti.i32)
 
 
 @ti.func

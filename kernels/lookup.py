@@ -17,7 +17,8 @@ per image row and sample index, so that most samples need no search (the observa
 import numpy as np
 import taichi as ti
 
-from .funcs import block_key, block_row, cell_corners, floor_i32, trilinear
+from .funcs import (block_key, block_row, cell_corners, corner_offset, floor_i32,
+                    reaches_block, trilinear)
 from .layout import BLOCK, BLOCK_VOXELS, block_key_np, decode_keys
 
 
@@ -144,10 +145,9 @@ def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot
             blocks[vs, j + mf, t] = b[t]
         for t in ti.static(range(3, 11)):
             blocks[vs, j + mf, t] = ti.select(same, blocks[vs, jp, t], UNSEARCHED)
-    last = (c0 - b * BLOCK) == BLOCK - 1
     for t in range(8):
-        nb = b + ti.Vector([(t >> 2) & 1, (t >> 1) & 1, t & 1])  # block b + corner(t)
-        if ((nb == b) | last).all() and blocks[vs, j + mf, 3 + t] == UNSEARCHED:
+        if reaches_block(c0, b, t) and blocks[vs, j + mf, 3 + t] == UNSEARCHED:
+            nb = b + corner_offset(t)
             blocks[vs, j + mf, 3 + t] = hashed_block_row(block_hash, nb[0], nb[1], nb[2])
     idx = cell_corners(block_table, c0, b, ti.Vector(
         [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))

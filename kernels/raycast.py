@@ -58,7 +58,8 @@ import math
 import numpy as np
 import taichi as ti
 
-from .funcs import block_row, cell_corners, floor_i32, trilinear
+from .funcs import (block_row, cell_corners, corner_offset, floor_i32, reaches_block,
+                    trilinear)
 from .layout import BLOCK, BLOCK_VOXELS, band_box
 from .rays import (N_RAY_PARAMS, NO_FACE, P_M, P_O, check_camera, check_positive, check_stride,
                    clip_to_box, ray_grid, ray_origin, ray_params)
@@ -168,15 +169,12 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                 k = ti.max(k + 1, ti.cast(k_exit, ti.i64))
                 prev_valid = 0
             else:
-                # a cell reaches block b + corner(s) only if c0 is on b's last layer along
-                # every axis where corner(s) is 1: look such a block up the first time
-                # (a run-time loop: one inlined binary search, not seven, keeps compiling fast)
-                edge = ti.cast(c0 - b * BLOCK == BLOCK - 1, ti.i32)
+                # look a block the cell reaches up the first time (a run-time loop: one
+                # inlined binary search, not seven, keeps compiling fast)
                 for s in range(1, 8):
-                    cs = ti.Vector([(s >> 2) & 1, (s >> 1) & 1, s & 1])
-                    if rows[s] == _UNKNOWN and (cs <= edge).all():
-                        rows[s] = block_row(block_keys, b[0] + cs[0], b[1] + cs[1],
-                                             b[2] + cs[2])
+                    if rows[s] == _UNKNOWN and reaches_block(c0, b, s):
+                        nb = b + corner_offset(s)
+                        rows[s] = block_row(block_keys, nb[0], nb[1], nb[2])
                 mu, s, valid = _sdf_sample(block_table, mean, observed, var, with_var, g, c0, b,
                                            rows)
                 if valid and not prev_valid and mu <= 0:

@@ -19,6 +19,15 @@ per frame of each, the ratios of the medians to the TSDF's (issue 16's target fo
 whole observation pass: at most 1.5x the TSDF), and the rays model's accepted samples per frame
 (the super-pixels of ``observation.aggregate`` set how many rays a frame casts). The machine may
 be shared: the four run interleaved, frame by frame.
+
+``--loop SECONDS`` instead calls the rays model's ``Observer.integrate`` on the timed frames
+round and round for that long and prints its mean milliseconds per frame: one figure steady
+enough to compare two builds by alternating runs (one run of the table above moved by 20 %
+between identical builds), and a process to sample with ``perf record -p PID`` (printed
+first; docs/measurements.md, "The observation pass's block lookup, profiled with perf")::
+
+    python tools/bench_observe.py --timed 40 --loop 15
+    python ../before/tools/bench_observe.py --timed 40 --loop 15   # a worktree of another build
 """
 
 from __future__ import annotations
@@ -41,6 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--voxel", type=float, default=0.02, help="voxel size, metres")
     ap.add_argument("--frames", type=int, default=500, help="fuse the first N frames")
     ap.add_argument("--timed", type=int, default=50, help="time this many of them, evenly spread")
+    ap.add_argument("--loop", type=float, default=0.0, metavar="SECONDS",
+                    help="loop the rays model over the timed frames this long, print ms per frame")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="config override (repeatable), e.g. observation.aggregate=0.5")
     args = ap.parse_args(argv)
@@ -73,6 +84,8 @@ def main(argv=None) -> int:
     for obs in observers.values():  # compile
         obs.integrate(f0.depth_m, f0.K, f0.T_W_C)
     tsdf.integrate(f0.depth_m, f0.K, f0.T_W_C, name="warm-up")
+    if args.loop > 0:
+        return _loop(observers["rays"], [frames[int(i)] for i in picks], args.loop, args.sets)
     ms = {"tsdf": [], "rays": [], "voxels": [], "carve": []}
     samples = {"rays": []}  # the voxel model observes voxels, not samples
     for n, i in enumerate(picks):
@@ -98,6 +111,21 @@ def main(argv=None) -> int:
     for k, v in ms.items():
         n = f"{np.mean(samples[k]):,.0f}" if k in samples else "-"
         print(f"| {k} | {np.median(v):.1f} | {min(v):.1f} | {np.median(v) / base:.2f} | {n} |")
+    return 0
+
+
+def _loop(observer, frames, seconds: float, sets) -> int:
+    """``--loop``: ``observer.integrate`` over ``frames``, round and round for ``seconds``."""
+    import os
+
+    print(f"pid {os.getpid()}: looping for {seconds:g} s", flush=True)
+    t0, n = time.perf_counter(), 0
+    while time.perf_counter() - t0 < seconds:
+        for f in frames:
+            observer.integrate(f.depth_m, f.K, f.T_W_C)
+            n += 1
+    print(f"{' '.join(sets) or 'defaults'}: rays {1e3 * (time.perf_counter() - t0) / n:.2f} ms "
+          f"per frame ({n} frames)")
     return 0
 
 
