@@ -12,13 +12,11 @@ import taichi as ti
 
 from .funcs import (block_is_planar, block_mean_depth, block_row, corner, floor_i32,
                     trilinear)
+from .fixedpoint import fixed_point, part_sum, saturated_entries
 from .layout import BLOCK, CENTRE
 from .lookup import SAMPLE_ACCEPTED, SAMPLE_GATED, band_index, look_up_sample
 from .stencil import first_chunk, virtual_iterations
 
-FRACTION_BITS = 32  # one maximal-weight contribution = 2^32 fixed-point units
-SATURATION = 1 << 60  # |entry| beyond this (before an add) is counted as saturated
-MAX_PARTS = 4  # accumulator copies (one per thread): their sum stays below 2^63
 N_HALF = 27 - CENTRE  # accumulated stencil columns: offsets o = 13..26
 
 # Per-frame parameters, one float64 vector (a single cheap kernel argument):
@@ -51,7 +49,7 @@ C_VALID = 0  # strided pixels with valid depth
 C_USED = 1  # ... of which at least one sample was accepted
 C_ACCEPTED = 2  # accepted samples
 C_DROPPED = 3  # samples dropped because a corner of their cell is not in the band
-C_SATURATED = 4  # accumulator adds that started beyond SATURATION
+C_SATURATED = 4  # accumulator entries found beyond SATURATION (Observer's checks)
 C_FALLBACK = 5  # used pixels whose normal fell back to the ray direction
 C_GATED = 6  # samples rejected by the reference gate (all corners in the band)
 N_COUNTS = 7
@@ -151,12 +149,6 @@ def pixel_normal(depth: ti.template(), prm: ti.template(), u: ti.i32, v: ti.i32)
     return ti.Vector([n[0], n[1], n[2], fallback])
 
 
-@ti.func
-def fixed_point(x: ti.f64) -> ti.i64:
-    """round(x) half away from zero, as int64 (no libm call)."""
-    return ti.cast(x + ti.select(x >= 0, 0.5, -0.5), ti.i64)
-
-
 _NDA = ti.types.ndarray
 
 @ti.func
@@ -183,7 +175,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
     cos_min = prm[P_COS_MIN]
     gate = prm[P_GATE]
     v = vs * stride
-    n_valid, n_used, n_acc_row, n_drop, n_sat, n_fb, n_gate = 0, 0, 0, 0, 0, 0, 0
+    n_valid, n_used, n_acc_row, n_drop, n_fb, n_gate = 0, 0, 0, 0, 0, 0
     for jj in range(mf + m + 1):
         blocks[vs, jj, 0] = 1 << 30  # no block has this coordinate: empty cache
     pixels = ti.cast(prm[P_PIXELS], ti.i32)
@@ -312,14 +304,11 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                             wa = ws * a[ca]
                             for cb in ti.static(range(ca, 8)):
                                 col = ti.static(column(ca, cb))
-                                old = S_acc[part, idx[ca], col]  # this thread's copy: no atomic
-                                S_acc[part, idx[ca], col] = old + fixed_point(wa * a[cb])
-                                if old > ti.i64(SATURATION):
-                                    n_sat += 1
-                            old = h_acc[part, idx[ca]]
-                            h_acc[part, idx[ca]] = old + fixed_point(wa * y)
-                            if old > ti.i64(SATURATION) or old < -ti.i64(SATURATION):
-                                n_sat += 1
+                                # this thread's copy: plain adds, no atomic; no overflow
+                                # test either (Observer.integrate bounds the growth)
+                                S_acc[part, idx[ca], col] = S_acc[part, idx[ca], col] + \
+                                    fixed_point(wa * a[cb])
+                            h_acc[part, idx[ca]] = h_acc[part, idx[ca]] + fixed_point(wa * y)
             if n_acc > 0:
                 n_used += pixels
                 n_acc_row += n_acc
@@ -329,7 +318,6 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
     counts[vs, C_USED] = n_used
     counts[vs, C_ACCEPTED] = n_acc_row
     counts[vs, C_DROPPED] = n_drop
-    counts[vs, C_SATURATED] = n_sat
     counts[vs, C_FALLBACK] = n_fb
     counts[vs, C_GATED] = n_gate
 
@@ -470,19 +458,6 @@ def estimate_normals(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
         fallback[v, u] = fb
 
 
-@ti.func
-def part_sum(acc: ti.template(), i: ti.i32, c: ti.i32) -> ti.i64:
-    """Entry ``(i, c)`` summed over the accumulator's parts (integers: exact), unrolled over
-    at most :data:`MAX_PARTS`: LLVM vectorised a run-time loop here into ~13k lines of IR, code
-    even a warm run generates on the first call (:func:`finalize_stencil`'s first call 0.47 ->
-    0.12 s warm, 0.84 -> 0.22 s cold; ``python tools/bench_startup.py --kernels 25``)."""
-    total = ti.i64(0)
-    for p in ti.static(range(MAX_PARTS)):
-        if p < acc.shape[0]:
-            total += acc[p, i, c]
-    return total
-
-
 @ti.kernel
 def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
               block_table: ti.types.ndarray(dtype=ti.i32, ndim=2),
@@ -491,11 +466,16 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
               h_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
               inv_scale: ti.f64,
               S: ti.types.ndarray(dtype=ti.f32, ndim=2),
-              h: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+              h: ti.types.ndarray(dtype=ti.f32, ndim=1),
+              saturated: ti.types.ndarray(dtype=ti.i64, ndim=1)):
     """Fixed point -> float32 stencil: ``S[i, o] = S_acc[i, o - 13] / scale`` for o >= 13 and the
     mirror ``S[i, o] = S_acc[j, 13 - o] / scale``, ``j`` = band index of ``ijk_i + offset(o)``
-    (0 if not in the band), for o < 13; ``h = h_acc / scale``. Deterministic (pure reads)."""
+    (0 if not in the band), for o < 13; ``h = h_acc / scale``; ``saturated[0] +=`` the entries
+    beyond SATURATION (:func:`count_saturated`). Deterministic (reads, integer atomics)."""
     for i in range(S.shape[0]):
+        n_sat = saturated_entries(S_acc, h_acc, i)
+        if n_sat > 0:
+            ti.atomic_add(saturated[0], n_sat)
         for o in ti.static(range(CENTRE, 27)):
             S[i, o] = ti.cast(ti.cast(part_sum(S_acc, i, o - CENTRE), ti.f64) * inv_scale, ti.f32)
         v = ti.Vector([ijk[i, 0], ijk[i, 1], ijk[i, 2]])

@@ -80,16 +80,16 @@ accumulators as ``round(x * scale)`` (round half away from zero), ``scale = 2^FR
 w_max`` rounded down to a power of two, ``w_max = 1 / ((a cos_min)^2 + sigma_pose^2 +
 sigma_model^2)``
 the largest possible weight (sigma_depth >= a cos_min; a frame's sigma_pose may not go below the
-Observer's). A contribution to ``S`` is at most ``w_max`` (``w <= w_max``,
-``a_c a_c' <= 1``), i.e. at most 2^32 units; its rounding error is at most 2^-33 w_max, far below
-the float32 resolution of any entry it lands in. Each thread adds into its own copy of the
-accumulators (``parts``: one per CPU thread, at most MAX_PARTS = 4), without atomics; the copies
-are summed when read. An entry of a copy may grow to ``SATURATION = 2^60`` units, i.e. 2^28
-(2.7 10^8) maximal contributions, before an add to it is counted as *saturated*; increments are
-at most 2^32 units (2^32 |y| / metre for ``h``), so neither a copy nor the sum of four can
-wrap around at 2^63 before an add is counted: a saturation count of 0 guarantees exact sums.
-Integer addition is associative, so the accumulated arrays are bitwise identical whatever the
-thread schedule and thread count (and whatever the order of the frames).
+Observer's). One pixel's contribution to ``S`` is at most ``w_max`` (``a_c a_c' <= 1``), 2^32
+units; a rounding error is at most 2^-33 w_max, far below the float32 resolution of any entry.
+Each thread adds into its own copy of the accumulators (``parts``: one per CPU thread, at most
+MAX_PARTS = 4), without atomics; the copies are summed when read. *Saturation*: the adds test
+nothing (a test per add cost ~9 % of the pass); :meth:`Observer.integrate` sums the frames'
+bounds on an entry's growth (:func:`kernels.fixedpoint.growth_bound`) and, before they pass
+2^62, counts the entries beyond 2^60 (:meth:`~Observer.finalize` counts too), so none wraps
+around at 2^63 unseen (for frames under ~2^30 / (mf + m + 1) pixels): a saturation count of
+0 guarantees exact sums. Integer addition is associative, so the accumulated arrays are
+bitwise identical whatever the thread schedule and thread count (and the frames' order).
 
 Layout of the accumulators: ``S_acc`` (parts, N, 14) int64, column ``o - 13`` for ``o =
 13..26``; ``h_acc`` (parts, N) int64. Per-row counters: ``counts`` (rows, N_COUNTS) int64.
@@ -99,41 +99,28 @@ normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 
 half of ``a a^T`` and ``a y``). The lookup (:func:`kernels.lookup.look_up_sample`) reads the
 block table through a per-row cache of the blocks around sample j's block, looking a block up
 (hashed) only when a cell reaches it (perf put 35 % of the pass in binary searches of all 8).
-Measured on redkitchen frames at 2 cm: int64 atomics cost ~20 cycles each, so the per-thread
-copies took the pass from ~520 to ~150 ns per sample at stride 1 (the row loop had run on one
-thread: Taichi's CPU backend gives loops of fewer than 512 iterations to one thread), and
-super-pixels cut the samples ~12x (a super-pixel sample costs ~2x a pixel's). Measured and not kept:
-summing the samples in a row's previous cell before the adds (-10 % at stride 1, slower at
-stride 2, 3x the compile time), an unrolled corner loop (no gain).
+Per-thread copies instead of int64 atomics took the pass from ~520 to ~150 ns per sample, and
+super-pixels cut the samples ~12x (docs/measurements.md; measured and not kept there: summing
+a row's samples per cell before the adds, an unrolled corner loop).
 """
 
 import math
-import os
 
 import numpy as np
 import taichi as ti
 
-from .dataterm import (COUNT_NAMES, FRACTION_BITS, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B,
-                       P_COS_MIN, MAX_PARTS, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
+from .dataterm import (C_SATURATED, COUNT_NAMES, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B,
+                       P_COS_MIN, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
                        P_K, P_M, P_NORMAL_NOISE, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE,
                        P_SHARE, P_SPACING, P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
-                       ROW_ACCEPTED, ROW_DROPPED,
-                       MISFIT_SCALE, estimate_normals, finalize_stencil, misfit_frame,
-                       observe_frame, observe_rows, superpixels, window_sums)
+                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE, estimate_normals,
+                       finalize_stencil, misfit_frame, observe_frame, observe_rows, superpixels,
+                       window_sums)
+from .fixedpoint import (FRACTION_BITS, GROWTH_LIMIT, accumulator_parts, growth_bound,
+                         saturated_count)
 from .layout import BLOCK_VOXELS
 from .lookup import band_ijk_from_table, build_block_hash
 from .stencil import free_compile_arguments, zeros_aligned
-
-def accumulator_parts() -> int:
-    """Copies of the accumulators: one per CPU thread of the Taichi runtime (of the machine,
-    before Taichi is initialised), at most MAX_PARTS (their integer sum cannot overflow)."""
-    from taichi.lang import impl
-
-    threads = 0
-    if impl.get_runtime().prog is not None:  # before ti.init: as many as the CPU has
-        threads = int(getattr(impl.current_cfg(), "cpu_max_num_threads", 0) or 0)
-    return max(1, min(MAX_PARTS, threads or os.cpu_count() or 1))
-
 
 def _pinhole_inverse(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """K^-1 of pinhole intrinsics, (3, 3) float64."""
@@ -285,7 +272,6 @@ class Observer:
         # scale = 2^FRACTION_BITS / w_max, rounded down to a power of two (exact multiplies)
         self.w_max = 1.0 / var_floor
         self.fixed_scale = 2.0 ** math.floor(FRACTION_BITS - math.log2(self.w_max))
-        n = max(self.n_voxels, 1)
         # one copy of the accumulators per thread (the kernels add without atomics)
         self.parts = accumulator_parts()
         self._params = np.zeros(N_PARAMS, np.float64)
@@ -295,15 +281,15 @@ class Observer:
 
     def reset(self) -> None:
         """Forget all frames (zero the accumulators, the misfit sums and the counters)."""
-        # fresh zeroed memory rather than zeros written over the old: the pages are zeroed as
-        # the kernels first touch them (huge pages, zeros_aligned), not all here (writing 0
-        # over 420 MB took 1.1 s on a 1.86M-voxel band); numpy, not ti.ndarray: what
-        # release() drops goes back to the system
+        # fresh zeroed memory, not zeros written over the old: pages are zeroed as the kernels
+        # first touch them (writing 0 over 420 MB took 1.1 s on a 1.86M-voxel band); numpy,
+        # not ti.ndarray: what release() drops goes back to the system
         n = max(self.n_voxels, 1)
         self.S_acc = zeros_aligned((self.parts, n, N_HALF), np.int64)
         self.h_acc = zeros_aligned((self.parts, n), np.int64)
         self.counts = np.zeros(N_COUNTS, np.int64)
         self.frames = 0
+        self._unchecked = 0.0  # bound on any entry's growth since the last saturation count
         if self._R_acc is not None:
             self._R_acc = zeros_aligned(self._R_acc.shape, np.int64)
 
@@ -442,6 +428,10 @@ class Observer:
         S_acc, h_acc = self._data_term()
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         frame = np.zeros(N_COUNTS, np.int64)
+        growth = growth_bound(depth.shape, *prm[P_K:P_K + 4], prm[P_SPACING], prm[P_SHARE],
+                              self.m, self.mf)  # module docstring, "Saturation"
+        found = self._count_saturated() if self._unchecked + growth > GROWTH_LIMIT else 0
+        self._unchecked += growth
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
             if self.n_voxels:
                 observe_frame(image, mask, prm_l, self.block_hash, self.block_table,
@@ -450,7 +440,15 @@ class Observer:
             frame += counts.sum(axis=0)
         self.counts += frame
         self.frames += 1
+        frame[C_SATURATED] = found  # what a count before this frame found (0: none ran)
         return dict(zip(COUNT_NAMES, frame.tolist()))
+
+    def _count_saturated(self) -> int:
+        """Count the entries beyond 2^60 now (``counts`` keeps the largest count)."""
+        found = saturated_count(*self._data_term()) if self.n_voxels else 0
+        self.counts[C_SATURATED] = max(self.counts[C_SATURATED], found)
+        self._unchecked = 0.0
+        return found
 
     def frame_rows(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, stride: int = 1,
                    sigma_pose_m: float | None = None) -> dict:
@@ -506,8 +504,8 @@ class Observer:
     def misfit(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, mu: np.ndarray,
                var: np.ndarray, stride: int = 1, sigma_pose_m: float | None = None) -> None:
         """Add one frame's misfit against the band values ``mu`` (N,) (metres; the posterior
-        mean, ``var`` its variance, metres^2) to the sums :meth:`misfit_sums` returns: the same samples and weights as
-        :meth:`integrate`, nothing else is touched. One kernel launch; deterministic."""
+        mean, ``var`` its variance, metres^2) to the sums :meth:`misfit_sums` returns: the
+        same samples and weights as :meth:`integrate`, nothing else is touched. One kernel launch; deterministic."""
         stride = self._check_stride(stride)
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         mu, var = self._band_fields(mu, var)
@@ -579,21 +577,24 @@ class Observer:
         stencil (:meth:`finalize`). Exact (from the fixed-point sums)."""
         if not self.n_voxels:
             return np.zeros(0)
+        self._count_saturated()
         return self._data_term()[0][:, :, 0].sum(axis=0) / self.fixed_scale
 
     def finalize(self) -> tuple[np.ndarray, np.ndarray, dict]:
         """The data term so far: ``S_data`` (N, 27) float32 (stencil of A^T W A, symmetric:
         ``S[i, o] == S[nbr[i, o], 26 - o]``, 0 towards voxels outside the band), ``h_data`` (N,)
-        float32 (A^T W y, 1/metre), and stats: ``frames``, the summed COUNT_NAMES counts and
-        ``fixed_scale``. ``saturated`` > 0 means an accumulator came within 2x of int64
-        overflow (then the sums may be wrong). The accumulators are kept (more frames may
-        follow). Deterministic."""
+        float32 (A^T W y, 1/metre), and stats: ``frames``, the COUNT_NAMES counts (``saturated``
+        > 0: entries came within 2x of int64 overflow, the sums may be wrong) and
+        ``fixed_scale``. The accumulators are kept (more frames may follow). Deterministic."""
         N = self.n_voxels
         S = np.zeros((N, 27), np.float32)
         h = np.zeros(N, np.float32)
         if N:
+            found = np.zeros(1, np.int64)
             finalize_stencil(self.block_keys, self.block_table, self.ijk, *self._data_term(),
-                      1.0 / self.fixed_scale, S, h)
+                             1.0 / self.fixed_scale, S, h, found)
+            self.counts[C_SATURATED] = max(self.counts[C_SATURATED], found[0])
+            self._unchecked = 0.0
         stats = {"frames": self.frames, **dict(zip(COUNT_NAMES, self.counts.tolist())),
                  "fixed_scale": self.fixed_scale}
         return S, h, stats

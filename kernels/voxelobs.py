@@ -51,8 +51,9 @@ import numpy as np
 import taichi as ti
 
 from .dataterm import (MISFIT_CAP, MISFIT_NEAR, MISFIT_SCALE, P_COS_MIN, P_INV_VOXEL, P_JUMP,
-                       P_K, P_O, P_R, P_VAR_CORR, P_VAR_EXTRA, SATURATION, depth_sigma,
-                       fixed_point, pixel_normal)
+                       P_K, P_O, P_R, P_VAR_CORR, P_VAR_EXTRA, depth_sigma,
+                       pixel_normal)
+from .fixedpoint import SATURATION, fixed_point
 from .funcs import block_mean_depth, floor_i32
 from .layout import BLOCK, decode_keys
 from .observe import MAX_LEVEL, Observer

@@ -125,6 +125,43 @@ def face_normal(face):
     return n
 
 
+def test_one_frame_moves_no_entry_beyond_its_growth_bound(sphere):
+    """The adds test nothing for overflow: kernels.fixedpoint.growth_bound must bound what one
+    frame adds to any accumulator entry (S and h, every part), else an entry could wrap
+    around between two saturation counts."""
+    from kernels.fixedpoint import growth_bound
+
+    band, frames = sphere
+    obs = band.observer()
+    for frame in frames:
+        before = obs.S_acc.copy(), obs.h_acc.copy()
+        obs.integrate(frame.depth_m, frame.K, frame.T_W_C)
+        moved = max(np.abs(obs.S_acc - before[0]).max(), np.abs(obs.h_acc - before[1]).max())
+        (fx, fy), (cx, cy) = np.diag(frame.K)[:2], frame.K[:2, 2]
+        assert 0 < moved <= growth_bound(frame.depth_m.shape, fx, fy, cx, cy, obs.spacing_m,
+                                         obs.share, obs.m, obs.mf)
+
+
+def test_saturated_entries_are_counted_before_they_can_wrap(sphere, monkeypatch):
+    """An entry beyond 2^60 is reported: by the count integrate runs when the frames' summed
+    growth bounds would pass GROWTH_LIMIT, by finalize, and not otherwise (no count runs)."""
+    import kernels.observe as observe
+
+    band, frames = sphere
+    f = frames[0]
+    obs = band.observer()
+    assert obs.integrate(f.depth_m, f.K, f.T_W_C)["saturated"] == 0
+    obs.h_acc[0, 3] = -(1 << 60) - 1
+    obs.S_acc[-1, 7, 2] = (1 << 60) + 1
+    assert obs.integrate(f.depth_m, f.K, f.T_W_C)["saturated"] == 0  # far from the limit
+    monkeypatch.setattr(observe, "GROWTH_LIMIT", 1.25 * obs._unchecked)  # 2 frames in, 3rd passes
+    assert obs.integrate(f.depth_m, f.K, f.T_W_C)["saturated"] == 2  # the count ran first
+    assert obs.finalize()[2]["saturated"] == 2
+    obs.reset()
+    obs.integrate(f.depth_m, f.K, f.T_W_C)
+    assert obs.finalize()[2]["saturated"] == 0
+
+
 def stencil_matrix(S, nbr):
     N = len(S)
     keep = nbr >= 0

@@ -21,7 +21,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from kernels.layout import KEY_BIAS, block_key_np as _keys, decode_keys
-from kernels.observe import accumulator_parts
+from kernels.fixedpoint import accumulator_parts
 from kernels.layout import block_key_steps as _block_steps
 
 from ..errors import BftaichiError
