@@ -404,17 +404,17 @@ def superpixels(depth: _NDA(dtype=ti.f32, ndim=2), d1: _NDA(dtype=ti.f32, ndim=2
                     if not block_is_planar(depth, by, bx, k, mean, prm[P_A], prm[P_B], prm[P_Z0]):
                         mean = ti.f32(0.0)
                 dl[by, bx] = mean
-    for lv in ti.static(range(5)):
+    for top in ti.static(range(5)):  # coarsest first: a pixel is covered where its parent
+        lv = ti.static(4 - top)  # block's mask is 1 or 2 (a coarser block observes it)
         ml = ti.static((m0, m1, m2, m3, m4)[lv])
         dl = ti.static((depth, d1, d2, d3, d4)[lv])
         for v, u in ti.ndrange(ml.shape[0], ml.shape[1]):
             if lv <= levels:
                 covered = 0
-                for up in ti.static(range(lv + 1, 5)):
-                    if up <= levels:
-                        da = ti.static((depth, d1, d2, d3, d4)[up])
-                        covered |= superpixel_fits(da, v >> ti.static(up - lv),
-                                                   u >> ti.static(up - lv), 1 << up, foot)
+                if ti.static(lv < 4):
+                    mp = ti.static((m0, m1, m2, m3, m4)[lv + 1])
+                    if lv < levels and v >> 1 < mp.shape[0] and u >> 1 < mp.shape[1]:
+                        covered = ti.cast(mp[v >> 1, u >> 1] != 0, ti.i32)
                 m = 2
                 if not covered:
                     m = superpixel_fits(dl, v, u, 1 << lv, foot)
