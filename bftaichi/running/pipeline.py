@@ -152,8 +152,11 @@ def _progress(iterable, total: int, desc: str, enabled: bool, unit: str = "frame
 
 
 class _FrameReader:
-    """Iterate over frames in order while the next frame is read in a background thread (PNG
-    decoding and Taichi kernels both release the GIL). Accumulates the seconds spent waiting."""
+    """Iterate over frames in order while the next frame is read in a background thread.
+    Taichi holds the GIL while a kernel runs (docs/experiments/kernel_gil.py), so the thread
+    reads between kernels and while the loop waits for it; a reader process beside the
+    kernels saved nothing (docs/measurements.md, "Taichi kernels hold the GIL"). Accumulates
+    the seconds spent waiting."""
 
     def __init__(self, progress: bool):
         self.progress = progress
