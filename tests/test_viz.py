@@ -8,6 +8,7 @@ browser tests skip when Chromium is missing; in CI (``CI`` set) they fail instea
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from bftaichi.errors import DataError
 from bftaichi.running import viz
 from bftaichi.cli import main
 from bftaichi.running.viz import LEGEND, _colormap, _decimate, _page, _Recorder, preview_html
@@ -64,6 +66,19 @@ def test_run_writes_a_self_contained_preview(tiny_run):
 
     sigma = read_mesh_ply(tiny_run / "mesh.ply")[2]["sigma"]
     np.testing.assert_allclose([lo, hi], 1000 * np.percentile(sigma, [2, 98]), rtol=5e-3)
+
+
+def test_the_same_outputs_give_the_same_page(tiny_run, tmp_path):
+    """meshcat names its objects by uuid1 (time and host): the page numbers them, so a
+    preview is as reproducible as the run; it reads band.npz only to draw the band."""
+    page = preview_html(tiny_run)
+    assert preview_html(tiny_run) == page == (tiny_run / "preview.html").read_text()
+    copy = tmp_path / tiny_run.name  # the page's title is the folder's name
+    shutil.copytree(tiny_run, copy)
+    (copy / "band.npz").write_bytes(b"damaged")
+    assert preview_html(copy) == page  # band.npz not read (report.json has the origin)
+    with pytest.raises(DataError, match="band.npz"):
+        preview_html(copy, band=True)
 
 
 @needs_browser

@@ -416,7 +416,7 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
         from .viz import write_preview
 
         with timer("preview"):
-            write_preview(out)
+            write_preview(out, title=out.parent.name)  # out: the staging folder in OUT
         report["seconds"]["preview"] = timer.seconds["preview"]
     if cfg.run.plots or cfg.run.preview:
         report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)

@@ -39,6 +39,7 @@ scene is shown in the run's local frame: world minus ``origin_m`` of report.json
 
 from __future__ import annotations
 
+import contextlib
 import html
 import time
 from pathlib import Path
@@ -117,16 +118,19 @@ def _frustums(poses, K, size, depth_m: float, colors) -> tuple[np.ndarray, np.nd
     return pts, col
 
 
-def _load_outputs(out: Path) -> dict:
-    """The outputs of a run folder, read while no commit replaces them."""
+def _load_outputs(out: Path, band: bool = True) -> dict:
+    """The outputs of a run folder, read while no commit replaces them (``band``: see
+    :func:`_read_outputs`)."""
     from .folder import reading
 
     with reading(out):
-        return _read_outputs(out)
+        return _read_outputs(out, band)
 
 
-def _read_outputs(out: Path) -> dict:
-    """Each output file through its checking reader (a damaged one: DataError naming it)."""
+def _read_outputs(out: Path, band: bool = True) -> dict:
+    """Each output file through its checking reader (a damaged one: DataError naming it).
+    ``band`` False: band.npz is read only when report.json has no ``origin_m`` (the scene
+    without the band's points needs nothing else of it; at 1 cm it is ~90 MB to inflate)."""
     from ..io import read_mesh_ply
     from ..planning.nbv import read_ranking
     from ..posterior import read_band
@@ -135,16 +139,18 @@ def _read_outputs(out: Path) -> dict:
     out = Path(out)
     if not out.is_dir():
         raise DataError(f"{out} is not a folder of run outputs")
-    readers = {"report": (out / "report.json", read_report),
-               "nbv": (out / "nbv.json", read_ranking),
+    report = out / "report.json"
+    data = {"report": read_report(report) if report.exists() else None, "band": None}
+    readers = {"nbv": (out / "nbv.json", read_ranking),
                "mesh.ply": (out / "mesh.ply", read_mesh_ply),
-               "tsdf_mesh.ply": (out / "tsdf_mesh.ply", read_mesh_ply),
-               "band": (out / "band.npz", read_band)}
-    data = {name: read(p) if p.exists() else None for name, (p, read) in readers.items()}
+               "tsdf_mesh.ply": (out / "tsdf_mesh.ply", read_mesh_ply)}
+    if band or "origin_m" not in (data["report"] or {}):
+        readers["band"] = (out / "band.npz", read_band)
+    data.update({name: read(p) if p.exists() else None for name, (p, read) in readers.items()})
     if data["mesh.ply"] is None and data["tsdf_mesh.ply"] is None:
         raise DataError(f"{out} holds neither mesh.ply nor tsdf_mesh.ply: nothing to show")
-    report, band = data["report"] or {}, data["band"] or {}
-    data["origin"] = np.asarray(report.get("origin_m", band.get("origin", np.zeros(3))),
+    report, arrays = data["report"] or {}, data["band"] or {}
+    data["origin"] = np.asarray(report.get("origin_m", arrays.get("origin", np.zeros(3))),
                                 np.float64)
     for name in ("mesh.ply", "tsdf_mesh.ply"):  # world -> the local frame (module docstring)
         if data[name] is not None and np.any(data["origin"]):
@@ -166,7 +172,7 @@ def build_scene(vis, out_dir, *, max_faces: int = MAX_FACES, band: bool = False)
     property shown, ``sigma`` or, for a mesh.ply without it, ``sigma_pos``) and what was drawn."""
     import meshcat.geometry as g
 
-    d = _load_outputs(Path(out_dir))
+    d = _load_outputs(Path(out_dir), band=band)
     root = vis["bftaichi"]
     info = {"sigma_mm": None, "sigma_name": None, "drawn": []}
     scale, centre = 1.0, None
@@ -265,14 +271,42 @@ var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
 """
 
 
-def preview_html(out_dir, *, max_faces: int = MAX_FACES, band: bool = False) -> str:
+def preview_html(out_dir, *, max_faces: int = MAX_FACES, band: bool = False,
+                 title: str | None = None) -> str:
     """The self-contained page (meshcat's viewer bundle and the scene inline) of a run's
-    outputs in ``out_dir``. Starts no process."""
+    outputs in ``out_dir``, titled ``title`` (default: the folder's name). Starts no
+    process."""
     import meshcat
 
     rec = _Recorder()
-    info = build_scene(meshcat.Visualizer(window=rec), out_dir, max_faces=max_faces, band=band)
-    return _page(rec.commands, info["sigma_mm"], Path(out_dir).name, info["sigma_name"])
+    with _numbered_uuids():
+        info = build_scene(meshcat.Visualizer(window=rec), out_dir, max_faces=max_faces,
+                           band=band)
+    return _page(rec.commands, info["sigma_mm"], title or Path(out_dir).name, info["sigma_name"])
+
+
+@contextlib.contextmanager
+def _numbered_uuids():
+    """meshcat names each geometry and material ``uuid.uuid1()`` (the time and the host), so
+    a page of the same outputs differed byte for byte run after run; a static page numbers
+    them instead (unique within the page, as three.js needs)."""
+    import itertools
+    import uuid
+
+    import meshcat.geometry
+
+    numbers = itertools.count(1)
+
+    class Numbered:
+        @staticmethod
+        def uuid1():
+            return uuid.UUID(int=next(numbers))
+
+    meshcat.geometry.uuid = Numbered
+    try:
+        yield
+    finally:
+        meshcat.geometry.uuid = uuid
 
 
 #: Legend titles of the vertex property the mesh is coloured by.
