@@ -110,17 +110,35 @@ def write_json(path: str | os.PathLike, obj) -> None:
     atomic_write_bytes(path, (to_json(obj) + "\n").encode())
 
 
+#: A member of ``write_npz`` whose first STORE_PROBE bytes deflate to more than STORE_RATIO of
+#: their size is stored uncompressed: a float field of the posterior (mean, var, cov) deflates
+#: to 0.91-0.92 of its size, at ~20 ns a byte.
+STORE_PROBE = 1 << 20
+STORE_RATIO = 0.85
+
+
 def write_npz(path: str | os.PathLike, **arrays) -> None:
-    """A compressed ``.npz`` (what ``np.savez_compressed`` writes, ``np.load`` reads) built in
-    memory, then an atomic write. Deflate level 1: about 1.5x faster than savez_compressed's
-    default level for a file 2 % larger (float32 fields compress little either way)."""
+    """An ``.npz`` (what ``np.savez_compressed`` writes, ``np.load`` reads) built in memory,
+    then an atomic write. Deflate level 1: about 1.5x faster than savez_compressed's default
+    level for a file 2 % larger. A member that deflates little (its first STORE_PROBE bytes to
+    more than STORE_RATIO) is stored as is: on a 1 cm band of 3.46 M voxels that saved 1.5 of
+    the 2.0 s of deflating, for a file 8 % larger (docs/measurements.md)."""
     import zipfile
+    import zlib
 
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
         for name, value in arrays.items():
-            with zf.open(name + ".npy", "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+            data = io.BytesIO()
+            np.lib.format.write_array(data, np.asanyarray(value), allow_pickle=False)
+            data = data.getbuffer()
+            head = bytes(data[:STORE_PROBE])
+            deflate = zlib.compressobj(1, zlib.DEFLATED, -15)
+            small = len(deflate.compress(head) + deflate.flush()) <= STORE_RATIO * len(head)
+            info = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o600 << 16  # rw-------, as ZipFile.open gives a name
+            zf.writestr(info, data, compresslevel=1,
+                        compress_type=zipfile.ZIP_DEFLATED if small else zipfile.ZIP_STORED)
     atomic_write_bytes(path, buf.getvalue())
 
 
