@@ -50,6 +50,51 @@ def test_carve_counts_match_the_bootstrap_rule():
     assert expected[:, 0].sum() > 100 and (expected[:, 1] > expected[:, 0]).sum() > 100
 
 
+def test_the_groups_out_of_view_are_skipped_without_changing_a_count():
+    """A band's rows come block by block; the counter skips the blocks behind the camera or
+    outside the image. A camera inside a block-ordered grid, seeing a part of it: the counts
+    equal the rule applied to every voxel (numpy, vectorised)."""
+    from kernels.carve import FreeSpaceCounter, voxel_groups
+
+    rng = np.random.default_rng(5)
+    voxel, tau_b = 0.02, 0.06
+    blocks = np.stack(np.meshgrid(*[np.arange(-3, 3)] * 2, np.arange(-1, 2), indexing="ij"),
+                      -1).reshape(-1, 3)
+    local = np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    ijk = (blocks[:, None, :] * 8 + local[None]).reshape(-1, 3).astype(np.int32)
+    starts, _ = voxel_groups(ijk)
+    assert len(starts) - 1 == len(blocks)  # one group a block
+    K = np.array([[61.37, 0, 31.71], [0, 60.93, 23.29], [0, 0, 1]])
+    counter = FreeSpaceCounter(ijk, voxel, tau_b)
+    expected = np.zeros((len(ijk), 2), np.int64)
+    for f in range(4):
+        angle = 0.4 * f
+        T = np.eye(4)
+        T[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0],
+                     [-np.sin(angle), 0, np.cos(angle)]]
+        T[:3, 3] = (0.013 * f, 0.021, -0.011)
+        depth = (0.3 + 0.5 * rng.random((48, 64))).astype(np.float32)
+        depth[rng.random(depth.shape) < 0.1] = 0.0
+        counter.add(depth, K, T)
+        T_C_W = np.linalg.inv(T)
+        A = K @ T_C_W[:3, :3] * voxel
+        c = K @ (T_C_W[:3, :3] @ np.full(3, 0.5 * voxel) + T_C_W[:3, 3])
+        p = ijk.astype(np.float64) @ A.T + c
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uh, vh = p[:, 0] / z + 0.5, p[:, 1] / z + 0.5
+        seen = (z > 0) & (uh >= 0) & (uh < 64) & (vh >= 0) & (vh < 48)
+        d = np.zeros(len(ijk))
+        d[seen] = depth[vh[seen].astype(int), uh[seen].astype(int)]
+        observe = seen & (d > 0) & (d - z >= -tau_b)
+        expected[:, 1] += observe
+        expected[:, 0] += observe & (d - z >= tau_b)
+    np.testing.assert_array_equal(counter.observing(), expected[:, 1])
+    np.testing.assert_array_equal(counter.carved(), expected[:, 0])
+    in_view = (expected[:, 1] > 0).reshape(len(blocks), -1).any(axis=1)
+    assert 0 < in_view.sum() < len(blocks) // 2  # most blocks are out of every view
+
+
 def test_carved_voxels_are_lifted_out_of_the_surface():
     """Voxels in front of the surface that the averaged TSDF does not call free (``tsdf <=
     tau``), pulled toward "inside" (as the samples behind a thin part pull them) below half a
