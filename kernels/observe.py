@@ -504,8 +504,8 @@ class Observer:
     def misfit(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, mu: np.ndarray,
                var: np.ndarray, stride: int = 1, sigma_pose_m: float | None = None) -> None:
         """Add one frame's misfit against the band values ``mu`` (N,) (metres; the posterior
-        mean, ``var`` its variance, metres^2) to the sums :meth:`misfit_sums` returns: the
-        same samples and weights as :meth:`integrate`, nothing else is touched. One kernel launch; deterministic."""
+        mean, ``var`` its variance, metres^2) to the sums :meth:`misfit_sums` returns: the same
+        samples and weights as :meth:`integrate`; nothing else changes. Deterministic."""
         stride = self._check_stride(stride)
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         mu, var = self._band_fields(mu, var)
