@@ -471,7 +471,8 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
     """Fixed point -> float32 stencil: ``S[i, o] = S_acc[i, o - 13] / scale`` for o >= 13 and the
     mirror ``S[i, o] = S_acc[j, 13 - o] / scale``, ``j`` = band index of ``ijk_i + offset(o)``
     (0 if not in the band), for o < 13; ``h = h_acc / scale``; ``saturated[0] +=`` the entries
-    beyond SATURATION (:func:`count_saturated`). Deterministic (reads, integer atomics)."""
+    beyond SATURATION (:func:`kernels.fixedpoint.count_saturated`). Deterministic (reads,
+    integer atomics)."""
     for i in range(S.shape[0]):
         n_sat = saturated_entries(S_acc, h_acc, i)
         if n_sat > 0:
