@@ -15,12 +15,13 @@ voxel if ``z_C > 0``, ``D > 0`` and ``sdf >= -tau_b``, and *carves* it if also `
 (the bootstrap's clamped value). Each voxel is counted by one thread per frame, in integers:
 the counts are exact and independent of the frame order.
 
-Cost: the voxels are taken in groups, their 8^3 blocks (:class:`FreeSpaceCounter` orders them
-block by block), and a group whose box of voxel indices lies wholly behind the camera or more than a
-pixel outside the image is skipped: the projection's ``z``, ``u z`` and ``v z`` are affine in
-the voxel index, so their extremes over the box are at its corners, and no voxel of a skipped
-group passes the test above. A frame sees a part of a room: on a 1 cm band of 500 redkitchen
-frames the pass took ~5 ms a frame over every voxel (docs/measurements.md).
+Cost: the voxels are taken in groups, their 8^3 blocks (:class:`FreeSpaceCounter` orders
+them block by block), and a group whose box of voxel indices lies wholly behind the camera or
+more than a pixel outside the image is skipped: the projection's ``z``, ``u z`` and ``v z``
+are affine in the voxel index, so their extremes over the box are at its corners, and no
+voxel of a skipped group passes the test above. On a 1 cm band of the redkitchen frames the
+pass took ~5 ms a frame over every voxel, ~4 ms with the groups: a kitchen frame sees most
+of the room (docs/measurements.md).
 """
 
 import numpy as np
@@ -49,8 +50,8 @@ def _project(prm: ti.template(), g):
 def _box_unseen(prm: ti.template(), lo, hi, W: ti.i32, H: ti.i32) -> ti.i32:
     """1 when no voxel of the index box ``[lo, hi]`` can pass the frame's test: the box is
     behind the camera (``z`` < -1 um at every corner), or in front of it and more than a
-    pixel left, right, above or below the image (``u < -1``: ``u z + z < 0``, an affine form,
-    at every corner; and so on); 0 otherwise."""
+    pixel left, right, above or below the image (left: the pixel coordinate ``p_0 / z + 0.5
+    < -1``, i.e. the affine ``p_0 + 1.5 z < 0``, at every corner; and so on); 0 otherwise."""
     z_lo, z_hi = ti.f64(1e300), ti.f64(-1e300)
     left, top = ti.f64(-1e300), ti.f64(-1e300)  # largest u z + 1.5 z, v z + 1.5 z
     right, bottom = ti.f64(1e300), ti.f64(1e300)  # smallest u z + 0.5 z - (W + 1) z, ...
