@@ -7,11 +7,12 @@ The band's voxels are grouped by their 8^3 block (the same blocks as the TSDF):
 * ``block_table`` (B, 512) int32: band index of the voxel at local position
   ``(i % 8) * 64 + (j % 8) * 8 + (k % 8)`` of block ``b``, or -1 if that voxel is not in the band.
 
-A lookup is a binary search over the blocks (log2 B steps, B ~ N / 100) plus one table read, with
-no hashing races: :func:`band_index` is a pure read, deterministic and safe in any kernel.
-:func:`look_up_sample` finds the 8 corners of an observation sample's cell through a block cache
-per image row and sample index, so that most samples need no search (the observation kernels of
-:mod:`kernels.dataterm`).
+A lookup is a binary search over the blocks (log2 B steps, B ~ N / 100) plus one table read:
+:func:`band_index` is a pure read, deterministic and safe in any kernel. The observation kernels
+of :mod:`kernels.dataterm` find a block through a hash table of the keys instead
+(:func:`build_block_hash`, built once by numpy, read only: no races either), and
+:func:`look_up_sample` finds the 8 corners of a sample's cell through a block cache per image
+row and sample index, so that most samples need no lookup at all.
 """
 
 import numpy as np

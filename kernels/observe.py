@@ -443,10 +443,11 @@ class Observer:
         frame[C_SATURATED] = found  # what a count before this frame found (0: none ran)
         return dict(zip(COUNT_NAMES, frame.tolist()))
 
-    def _count_saturated(self) -> int:
-        """Count the entries beyond 2^60 now (``counts`` keeps the largest count)."""
-        found = saturated_count(*self._data_term()) if self.n_voxels else 0
-        self.counts[C_SATURATED] = max(self.counts[C_SATURATED], found)
+    def _count_saturated(self, found: int | None = None) -> int:
+        """Count the entries beyond 2^60 (or take finalize's count); ``counts`` keeps the max."""
+        if found is None:
+            found = saturated_count(*self._data_term()) if self.n_voxels else 0
+        self.counts[C_SATURATED] = max(self.counts[C_SATURATED], int(found))
         self._unchecked = 0.0
         return found
 
@@ -593,8 +594,7 @@ class Observer:
             found = np.zeros(1, np.int64)
             finalize_stencil(self.block_keys, self.block_table, self.ijk, *self._data_term(),
                              1.0 / self.fixed_scale, S, h, found)
-            self.counts[C_SATURATED] = max(self.counts[C_SATURATED], found[0])
-            self._unchecked = 0.0
+            self._count_saturated(found[0])
         stats = {"frames": self.frames, **dict(zip(COUNT_NAMES, self.counts.tolist())),
                  "fixed_scale": self.fixed_scale}
         return S, h, stats
