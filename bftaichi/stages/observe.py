@@ -352,17 +352,20 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     too, but it is the *same* in every frame that sees a surface point, while a frame's noise
     and pose error are its own. So residuals are compared in pairs at one surface point: each
     cast pixel's point is projected into every other cast frame, and where that frame has a
-    cast pixel there that sees the same point (nearest cast pixel, depth within
-    ``max(2 voxels, 3 sigma_D)``), ``d = r_f - r_g`` holds no bootstrap error. The pairs are
-    modelled as ``N(0, sigma_D(D_f)^2 + sigma_D(D_g)^2 + 2 e^2)``, ``sigma_D = a + b (D -
-    z0)^2``. A pair counts only where its two frames agree within ``t = max(2 voxels, 3
-    sigma_D)`` (else the two pixels may see different surfaces), so the kept ``|d|`` are a
-    normal's truncated at ``t``, and ``e >= 0`` solves ``median P(|d'| <= |d| | |d'| <= t) =
-    1/2`` over the pairs (``d'`` of the pair's model; without the truncation this is
-    ``median(|d| / sqrt(...)) = 0.6745``, the median of a standard normal's ``|x|``; 0 when the
-    model alone already reaches it). Ignoring the truncation made the fit depend on the voxel
-    size: on 7-Scenes 6.6 mm at 1 cm against 9.8 mm at 2 cm (10.1 and 10.9 mm with it; 10.6
-    and 10.9 mm at 1 cm with ``t`` widened to 4 and 8 cm, against 9.6 and 10.9 mm without it).
+    cast pixel there that sees the same point (nearest cast pixel), ``d = r_f - r_g`` holds
+    no bootstrap error. The pairs are modelled as ``N(0, s^2 + 2 e^2)``, ``s^2 = sigma_D(D_f)^2
+    + sigma_D(D_g)^2``, ``sigma_D = a + b (D - z0)^2``. A pair counts only where its two frames
+    agree within ``t = max(2 voxels, 3 sqrt(s^2 + 2 e^2))``, 3 sigma of that model (else the
+    two pixels may see different surfaces), so the kept ``|d|`` are a normal's truncated at
+    ``t``, and ``e >= 0`` solves ``median P(|d'| <= |d| | |d'| <= t) = 1/2`` over the pairs
+    (``d'`` of the pair's model; without the truncation this is ``median(|d| / sqrt(...)) =
+    0.6745``, the median of a standard normal's ``|x|``; 0 when the model alone already
+    reaches it). The cut holds ``e``, so the fit is repeated with the cut of the last ``e``
+    until ``e`` moves by less than 0.5 % (at most ``_CUT_ROUNDS`` fits). A cut of the voxel
+    size alone made the fit depend on it: ``max(2 voxels, 3 sigma_D)`` found 10.1 mm on
+    7-Scenes at 1 cm against 10.9 mm at 2 cm (6.6 against 9.8 mm without modelling the cut);
+    this one 10.9 and 11.5 mm (a fixed cut of 8 cm at both sizes found 10.9 and 11.6 mm:
+    what is left is not the cut; docs/measurements.md).
     Robust to the outliers and deterministic. Fitted to the residuals themselves, the
     bootstrap's error on the development suite's curved objects read as 0.5-0.9 mm of frame
     noise (docs/measurements.md).
@@ -381,8 +384,8 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     "The noise fit on synthetic captures")).
 
     Returns ``{"sigma_extra_m": e, "sigma_corr_m": e_corr, "pixels": n, "frames": k,
-    "median_normalised_model": m0}`` (``n`` the pixel pairs; m0: the statistic with
-    ``e = 0``; 0.6745 is calibrated)."""
+    "median_normalised_model": m0, "cut_rounds": c}`` (``n`` the pixel pairs; m0: the
+    statistic with ``e = 0``, 0.6745 is calibrated; ``c`` the fits the cut took)."""
     from kernels.raycast import raycast_depth
 
     picks = FramePicks(frames, n_frames)
@@ -400,15 +403,44 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
         both &= np.abs(res) < bootstrap_trunc_m
         cast.append((res[::step, ::step], both[::step, ::step], D[::step, ::step],
                      np.asarray(f.K, np.float64), np.asarray(f.T_W_C, np.float64), step))
-    d_all, s_all, t_all = [], [], []
-    lag_sum, lag_n = 0.0, 0
+    # the pairs' cut is 3 sigma of the pair's own model, which holds e: fit, cut again, refit
+    # until e settles (it grows with the cut; a few rounds)
+    pairs = _pair_candidates(cast, obs, max_offset_px)
+    e = 0.0
+    for rounds in range(1, _CUT_ROUNDS + 1):
+        r, s, t, shared = _cut_pairs(pairs, voxel_size_m, e)
+        if len(r) < 100:
+            return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0, "pixels": int(len(r)),
+                    "frames": int(len(picks)), "median_normalised_model": None,
+                    "cut_rounds": rounds}
+        e_new = _fit_extra(r, s, t)
+        done = abs(e_new - e) <= 0.005 * max(e_new, 1e-6)
+        e = e_new
+        if done:
+            break
+    m0 = float(np.median(r / s))  # the model alone: 0.6745 is calibrated
+    corr = float(np.sqrt(min(max(shared, 0.0), e * e)))
+    return {"sigma_extra_m": e, "sigma_corr_m": corr, "pixels": int(len(r)),
+            "frames": int(len(picks)), "median_normalised_model": m0, "cut_rounds": rounds}
+
+
+#: Rounds of the noise fit's cut (3 sigma of the pair model, which holds the fitted noise).
+_CUT_ROUNDS = 6
+
+
+def _pair_candidates(cast, obs: ObservationConfig, max_offset_px: float | None) -> list:
+    """The noise fit's candidate pairs, per pair of cast frames (i, j): each cast pixel of i
+    whose point lands on a cast pixel of j. Per pair of frames ``(shape_i, v, u, into, gap, s,
+    d)``: the pixels of i, the pixel of j each landed on (``cv width_j + cu``),
+    ``|D_j - z_j|`` (how far j's depth is from the point), the two frames' sensor sigma in
+    quadrature and ``d = r_i - r_j``. Which of them see one point is :func:`_cut_pairs`'s."""
+    pairs = []
     for i, (g_i, m_i, D_i, K_i, T_i, st_i) in enumerate(cast):
         v, u = np.nonzero(m_i)
         if not len(v):
             continue
         dep = D_i[v, u]
         sd_i = obs.axial_sigma_m(dep)
-        tol = np.maximum(2.0 * voxel_size_m, 3.0 * sd_i)  # the same point: depth within this
         p_w = np.stack([(u * st_i - K_i[0, 2]) / K_i[0, 0] * dep,
                         (v * st_i - K_i[1, 2]) / K_i[1, 1] * dep, dep], 1) @ T_i[:3, :3].T \
             + T_i[:3, 3]
@@ -428,32 +460,51 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
                 inside &= near
             ok = np.zeros(len(p), bool)
             ok[inside] = m_j[cv[inside], cu[inside]]
-            ok[ok] &= np.abs(D_j[cv[ok], cu[ok]] - zj[ok]) < tol[ok]
             if not ok.any():
                 continue
-            d = g_i[v[ok], u[ok]] - g_j[cv[ok], cu[ok]]
-            d_all.append(d)
-            t_all.append(tol[ok])  # the pair was kept only if it agreed within this
-            # the pair's sensor noise, both frames'; e enters the pair as 2 e^2 (stat below)
-            s_all.append(np.hypot(sd_i[ok], obs.axial_sigma_m(D_j[cv[ok], cu[ok]])))
-            # neighbouring cast pixels of frame i paired with frame j: the product of their
-            # d keeps what the pixels of a frame share (2 e_corr^2), not independent noise,
-            # where they pair with two pixels of frame j (with one, seen at an angle, the
-            # product would hold that pixel's own noise, var(r_j), as if shared)
-            grid = np.zeros(g_i.shape)
-            into = np.full(g_i.shape, -1, np.int64)  # the frame-j cast pixel each was paired to
-            grid[v[ok], u[ok]] = d
-            into[v[ok], u[ok]] = cv[ok] * m_j.shape[1] + cu[ok]
-            for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1], np.s_[1:])):  # along u, v
-                pair = (into[a] >= 0) & (into[b] >= 0) & (into[a] != into[b])
-                lag_sum += 0.5 * float(np.sum(grid[a][pair] * grid[b][pair]))
-                lag_n += int(pair.sum())
+            D_ok = D_j[cv[ok], cu[ok]]
+            pairs.append((g_i.shape, v[ok], u[ok], cv[ok] * m_j.shape[1] + cu[ok],
+                          np.abs(D_ok - zj[ok]), np.hypot(sd_i[ok], obs.axial_sigma_m(D_ok)),
+                          g_i[v[ok], u[ok]] - g_j[cv[ok], cu[ok]]))
+    return pairs
+
+
+def _cut_pairs(pairs: list, voxel_size_m: float, e: float):
+    """The candidate pairs whose frames agree within ``t = max(2 voxels, 3 sqrt(s^2 + 2
+    e^2))``, 3 sigma of the pair's model for an extra noise ``e`` (else the two pixels may see
+    different surfaces): their ``|d|``, ``s`` and ``t``, and the shared part's mean product
+    (see :func:`estimate_extra_noise`)."""
+    d_all, s_all, t_all = [], [], []
+    lag_sum, lag_n = 0.0, 0
+    for shape_i, v, u, into_j, gap, s, d in pairs:
+        tol = np.maximum(2.0 * voxel_size_m, 3.0 * np.sqrt(s * s + 2.0 * e * e))
+        ok = gap < tol  # the same point, else not
+        if not ok.any():
+            continue
+        d_all.append(d[ok])
+        t_all.append(tol[ok])  # the pair was kept only if it agreed within this
+        s_all.append(s[ok])
+        # neighbouring cast pixels of frame i paired with frame j: the product of their d
+        # keeps what the pixels of a frame share (2 e_corr^2), not independent noise, where
+        # they pair with two pixels of frame j (with one, seen at an angle, the product would
+        # hold that pixel's own noise, var(r_j), as if shared)
+        grid = np.zeros(shape_i)
+        into = np.full(shape_i, -1, np.int64)  # the frame-j cast pixel each was paired to
+        grid[v[ok], u[ok]] = d[ok]
+        into[v[ok], u[ok]] = into_j[ok]
+        for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1], np.s_[1:])):  # along u, v
+            pair = (into[a] >= 0) & (into[b] >= 0) & (into[a] != into[b])
+            lag_sum += 0.5 * float(np.sum(grid[a][pair] * grid[b][pair]))
+            lag_n += int(pair.sum())
     r = np.abs(np.concatenate(d_all)) if d_all else np.zeros(0)
     s = np.concatenate(s_all) if s_all else np.zeros(0)
     t = np.concatenate(t_all) if t_all else np.zeros(0)
-    if len(r) < 100:
-        return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0, "pixels": int(len(r)),
-                "frames": int(len(picks)), "median_normalised_model": None}
+    return r, s, t, (lag_sum / lag_n if lag_n else 0.0)
+
+
+def _fit_extra(r: np.ndarray, s: np.ndarray, t: np.ndarray) -> float:
+    """The extra noise ``e >= 0`` whose truncated pair model puts half the pairs' ``|d|``
+    below their own (see :func:`estimate_extra_noise`); 0 when the sensor model alone does."""
     from scipy.special import erf
 
     def stat(e):
@@ -463,17 +514,12 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
         scale = np.sqrt(2.0 * (s * s + 2.0 * e * e))
         return float(np.median(erf(r / scale) / np.maximum(erf(t / scale), 1e-300)))
 
-    m0 = float(np.median(r / s))  # the model alone: 0.6745 is calibrated
-    e = 0.0
-    if stat(0.0) > 0.5:  # bisection: stat decreases with e
-        lo, hi = 0.0, max(float(np.median(r)) / 0.6744897501960817, 1e-6)
-        while stat(hi) > 0.5 and hi < 1.0:  # heavy truncation: the root can lie further out
-            hi *= 2.0
-        for _ in range(40):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if stat(mid) > 0.5 else (lo, mid)
-        e = hi
-    shared = lag_sum / lag_n if lag_n else 0.0
-    corr = float(np.sqrt(min(max(shared, 0.0), e * e)))
-    return {"sigma_extra_m": e, "sigma_corr_m": corr, "pixels": int(len(r)),
-            "frames": int(len(picks)), "median_normalised_model": m0}
+    if stat(0.0) <= 0.5:
+        return 0.0
+    lo, hi = 0.0, max(float(np.median(r)) / 0.6744897501960817, 1e-6)
+    while stat(hi) > 0.5 and hi < 1.0:  # heavy truncation: the root can lie further out
+        hi *= 2.0
+    for _ in range(40):  # bisection: stat decreases with e
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if stat(mid) > 0.5 else (lo, mid)
+    return hi
