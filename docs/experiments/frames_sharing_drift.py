@@ -4,14 +4,22 @@ at all; prints the noise fit with ``frames_sharing_noise`` (needs
 docs/experiments/frames_sharing_estimate.patch applied; docs/measurements.md)::
 
     git apply docs/experiments/frames_sharing_estimate.patch
-    PYTHONPATH=. python docs/experiments/frames_sharing_drift.py 48
+    python docs/experiments/frames_sharing_drift.py 48
 """
-import numpy as np, sys, time
-import bftaichi as bf
-from bftaichi.running.pipeline import open_frames
-from bftaichi.stages.band import build_band
-from bftaichi.frame import local_frames
-from bftaichi.stages.observe import estimate_extra_noise
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tools"))
+import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
+import bftaichi as bf  # noqa: E402
+from bftaichi.running.pipeline import open_frames  # noqa: E402
+from bftaichi.stages.band import build_band  # noqa: E402
+from bftaichi.frame import local_frames  # noqa: E402
+from bftaichi.stages.observe import estimate_extra_noise  # noqa: E402
 n = int(sys.argv[1]) if len(sys.argv) > 1 else 48
 cfg = bf.load_config(None, ["synthetic.width=160", "synthetic.height=120", "synthetic.fx=131.25", "synthetic.fy=131.25",
                             "synthetic.cx=79.5", "synthetic.cy=59.5", f"synthetic.n_views={n}",
