@@ -334,6 +334,27 @@ def _head_on(depth: np.ndarray, K: np.ndarray, cos_min: float = 0.8,
 _MIN_CAST = 5000
 
 
+def _cast_frame(f, band, observed: np.ndarray, voxel_size_m: float, bootstrap_trunc_m: float,
+                depth_range_m: tuple[float, float], stride: int = 4) -> tuple:
+    """The noise fit's view of frame ``f``: the bootstrap (``band``, its ``observed`` cells as
+    uint8) ray cast at every ``step``-th pixel (``stride``, denser on frames of fewer than
+    ``_MIN_CAST stride^2`` pixels) and the residuals ``z_tsdf - D`` of the head-on pixels
+    within ``bootstrap_trunc_m``. Returns ``(residual, mask, D, K, T_W_C, step)``, the first
+    three at the cast pixels (see :func:`estimate_extra_noise`)."""
+    from kernels.raycast import raycast_depth
+
+    h, w = f.depth_m.shape
+    step = int(max(1, min(stride, np.sqrt(h * w / _MIN_CAST))))
+    z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
+                      f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=step)
+    D = np.asarray(f.depth_m, np.float64)
+    both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=step)
+    res = np.where(both, z - D, 0.0)
+    both &= np.abs(res) < bootstrap_trunc_m
+    return (res[::step, ::step], both[::step, ::step], D[::step, ::step],
+            np.asarray(f.K, np.float64), np.asarray(f.T_W_C, np.float64), step)
+
+
 def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: float,
                          bootstrap_trunc_m: float, depth_range_m: tuple[float, float], *,
                          n_frames: int = 16, stride: int = 4,
@@ -386,23 +407,10 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     Returns ``{"sigma_extra_m": e, "sigma_corr_m": e_corr, "pixels": n, "frames": k,
     "median_normalised_model": m0, "cut_rounds": c}`` (``n`` the pixel pairs; m0: the
     statistic with ``e = 0``, 0.6745 is calibrated; ``c`` the fits the cut took)."""
-    from kernels.raycast import raycast_depth
-
     picks = FramePicks(frames, n_frames)
     observed = band.observed.astype(np.uint8)
-    cast = []  # per frame: residual, mask and depth at the cast pixels; K; T_W_C
-    for f in picks:
-        h, w = f.depth_m.shape
-        # at least MIN_CAST pixels per frame: small frames are cast more densely
-        step = int(max(1, min(stride, np.sqrt(h * w / _MIN_CAST))))
-        z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
-                          f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=step)
-        D = np.asarray(f.depth_m, np.float64)
-        both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=step)
-        res = np.where(both, z - D, 0.0)
-        both &= np.abs(res) < bootstrap_trunc_m
-        cast.append((res[::step, ::step], both[::step, ::step], D[::step, ::step],
-                     np.asarray(f.K, np.float64), np.asarray(f.T_W_C, np.float64), step))
+    cast = [_cast_frame(f, band, observed, voxel_size_m, bootstrap_trunc_m, depth_range_m,
+                        stride) for f in picks]
     # the pairs' cut is 3 sigma of the pair's own model, which holds e: fit, cut again, refit
     # until e settles (it grows with the cut; a few rounds)
     pairs = _pair_candidates(cast, obs, max_offset_px)

@@ -48,7 +48,6 @@ def main(argv=None) -> int:
     from bftaichi.frame import local_frames
     from bftaichi.running.pipeline import open_frames
     from bftaichi.stages.band import build_band
-    from kernels.raycast import raycast_depth
 
     if args.case:  # a development-suite case, rendered as tools/suite.py renders it
         from suite import case_sets
@@ -66,23 +65,14 @@ def main(argv=None) -> int:
     band, _ = build_band(recon.voxels, cfg.tsdf.bootstrap_trunc_m)
     frames = local_frames(recon.frames, recon.origin)
     observed = band.observed.astype(np.uint8)
-    d_min, d_max = cfg.scene.depth_min_m, cfg.scene.depth_max_m
     cache = {}
 
-    def cast(i: int, stride: int = 4):
+    def cast(i: int):
         """The noise fit's cast of frame i (its residuals against the bootstrap)."""
         if i not in cache:
-            f = frames[i]
-            h, w = f.depth_m.shape
-            K = np.asarray(f.K, np.float64)
-            z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, args.voxel,
-                              f.K, f.T_W_C, w, h, d_min, d_max, stride=stride)
-            D = np.asarray(f.depth_m, np.float64)
-            both = (z > 0) & (D > 0) & ob._head_on(D, K, stride=stride)
-            res = np.where(both, z - D, 0.0)
-            both &= np.abs(res) < cfg.tsdf.bootstrap_trunc_m
-            cache[i] = (res[::stride, ::stride], both[::stride, ::stride], D[::stride, ::stride],
-                        K, np.asarray(f.T_W_C, np.float64), stride)
+            cache[i] = ob._cast_frame(frames[i], band, observed, args.voxel,
+                                      cfg.tsdf.bootstrap_trunc_m,
+                                      (cfg.scene.depth_min_m, cfg.scene.depth_max_m))
         return cache[i]
 
     gaps = [int(g) for g in args.gaps.split(",")]
