@@ -172,6 +172,11 @@ def test_blend_is_exact_for_independent_voxels_and_scales_the_probes(sphere):
     exact = sandwich + (p / q) * (bayes - sandwich)
     np.testing.assert_allclose(var, exact, rtol=1e-4)
     assert "local data share" in stats["method"]
+    # frames that share their noise (kappa, sharednoise.shared_noise_factor) scale the
+    # sandwich, the data's part, and leave the prior's
+    kappa = rng.uniform(1, 30, n)
+    var, _, _ = estimate_variance(diagonal, solver, ijk, data=(None, d), kappa=kappa)
+    np.testing.assert_allclose(var, kappa * sandwich + (p / q) * (bayes - sandwich), rtol=1e-4)
 
     band, system = sphere["band"], sphere["system"]
     D_ii = system.S[:, CENTRE] * rng.uniform(0, 1, len(band.ijk)).astype(np.float32)

@@ -118,7 +118,10 @@ def judge(report: dict) -> dict:
            # the two halves of CD (metres): mesh to truth, truth to mesh
            "accuracy_tsdf": tsdf["accuracy_m"], "accuracy_post": post["accuracy_m"],
            "completeness_tsdf": tsdf["completeness_m"], "completeness_post": post["completeness_m"],
-           "seconds": report["seconds"]["total"]}
+           "seconds": report["seconds"]["total"],
+           # frames in a row that share one error of the fitted noise (1: none found)
+           "frames_sharing_noise": report["solver"]["observations"].get("noise_fit", {}).get(
+               "frames_sharing_noise")}
     for k in ("coverage@1sigma", "coverage@2sigma", "coverage@3sigma", "nll_vs_constant",
               "ause", "top10_ratio", "spearman", "mean_error_m", "median_error_m", "median_sigma_m",
               "n"):

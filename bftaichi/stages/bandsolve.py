@@ -11,6 +11,7 @@ import numpy as np
 from .observe import (FramePicks, estimate_extra_noise, free_space_rows, local_misfit,
                       make_observer, observe)
 from .prior import add_prior
+from .sharednoise import shared_noise_factor
 from .solve import prior_bias, solve_map
 from .variance import estimate_variance
 
@@ -71,8 +72,10 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     if bias_on:  # the MAP's bias under its prior, estimated at the mean (step 6)
         bias = prior_bias(system, band, cfg.prior, cfg.band.stencil, vs, mean, cfg.solver)
         lap("bias")
+    kappa = shared_noise_factor(band.weight, noise)  # frames in a row share their noise
     var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
-                                            probes=variance, data=data, bias=bias)
+                                            probes=variance, data=data, bias=bias,
+                                            kappa=kappa)
     lap("variance")
     if o.local_noise:  # the model error b^2 (fully correlated between neighbours) added
         picked = FramePicks(frames, o.misfit_frames)

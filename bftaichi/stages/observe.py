@@ -98,6 +98,15 @@ class ObservationConfig:
     that drops pixels; the rest is independent per pixel. report.json:
     ``solver.observations.noise_fit``; band.npz: ``sigma_extra_m``, ``sigma_corr_m``."""
 
+    in_time_order: bool = True
+    """The frames come in the order they were recorded, so neighbours share their pose error
+    (a recorded trajectory drifts). The noise fit then also measures how many frames in a row
+    one error of its extra noise spans (:func:`.sharednoise.frames_sharing_noise`; 1 where it
+    finds no significant sharing, as with independent noise), and the data's part of the
+    variance counts those frames as one (:func:`.sharednoise.shared_noise_factor`); the MAP
+    does not change. Set false for frames in no particular order. report.json:
+    ``solver.observations.noise_fit.frames_sharing_noise``."""
+
     local_noise: bool = True
     """Judge the noise model against the data around each voxel after the solve
     (:func:`local_misfit`: a second pass over the frames compares every sample with the
@@ -404,9 +413,19 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
     the same point, so the bootstrap's error cancels more of the way (docs/measurements.md,
     "The noise fit on synthetic captures")).
 
+    With ``obs.in_time_order`` (frames in their recorded order), also how many frames in a row
+    share one error of ``e`` (a recorded trajectory's poses drift): each of the spread frames
+    is cast with the frame after it too, and :func:`.sharednoise.frames_sharing_noise` fits
+    how the pairs' noise grows with their gap in time (``frames_sharing_noise``: 1 where it
+    does not grow significantly; ``sharing_z``, ``sharing_length``), and
+    ``shared_fraction``, the share of a frame's variance at a voxel that is the shared part
+    (:func:`_shared_in_time`). The variance stage counts such runs of frames as one
+    (:func:`.sharednoise.shared_noise_factor`).
+
     Returns ``{"sigma_extra_m": e, "sigma_corr_m": e_corr, "pixels": n, "frames": k,
     "median_normalised_model": m0, "cut_rounds": c}`` (``n`` the pixel pairs; m0: the
-    statistic with ``e = 0``, 0.6745 is calibrated; ``c`` the fits the cut took)."""
+    statistic with ``e = 0``, 0.6745 is calibrated; ``c`` the fits the cut took), and the
+    four above with ``obs.in_time_order``."""
     picks = FramePicks(frames, n_frames)
     observed = band.observed.astype(np.uint8)
     cast = [_cast_frame(f, band, observed, voxel_size_m, bootstrap_trunc_m, depth_range_m,
@@ -428,8 +447,40 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             break
     m0 = float(np.median(r / s))  # the model alone: 0.6745 is calibrated
     corr = float(np.sqrt(min(max(shared, 0.0), e * e)))
-    return {"sigma_extra_m": e, "sigma_corr_m": corr, "pixels": int(len(r)),
-            "frames": int(len(picks)), "median_normalised_model": m0, "cut_rounds": rounds}
+    out = {"sigma_extra_m": e, "sigma_corr_m": corr, "pixels": int(len(r)),
+           "frames": int(len(picks)), "median_normalised_model": m0, "cut_rounds": rounds}
+    if obs.in_time_order:  # frames close in time share their extra noise (drifting poses)
+        out.update(_shared_in_time(frames, picks.picks, cast, pairs, band, observed, obs,
+                                   voxel_size_m, bootstrap_trunc_m, depth_range_m, stride,
+                                   max_offset_px, e, corr, float(np.median(s * s))))
+    return out
+
+
+def _shared_in_time(frames, picks, cast, pairs, band, observed, obs, voxel_size_m,
+                    bootstrap_trunc_m, depth_range_m, stride, max_offset_px, e, corr,
+                    s2) -> dict:
+    """:func:`.sharednoise.frames_sharing_noise` of the fit's pairs and of each pick with the
+    frame after it (a gap of one), and ``shared_fraction``: the share of a frame's variance
+    at a voxel that is the pixels' shared noise ``e_corr``, the rest (``s^2 / 2 + e^2 -
+    e_corr^2`` a pixel, ``s2`` the pairs' median ``s^2``) averaged over the pixels that
+    cover a voxel at the median depth (``observation.stride``)."""
+    from .sharednoise import frames_sharing_noise
+
+    timed = [p[:-1] + ((int(picks[p[-1][0]]), int(picks[p[-1][1]])),) for p in pairs]
+    taken = set(picks.tolist())
+    for i, at in enumerate(picks):
+        if at + 1 < len(frames) and at + 1 not in taken:
+            after = _cast_frame(frames[int(at) + 1], band, observed, voxel_size_m,
+                                bootstrap_trunc_m, depth_range_m, stride)
+            timed += [p[:-1] + ((int(at), int(at) + 1),)
+                      for p in _pair_candidates([cast[i], after], obs, max_offset_px)]
+    out = frames_sharing_noise(timed, lambda p: _cut_pairs(p, voxel_size_m, e, shared=False)[:3],
+                               lambda *rst: _fit_extra(*rst, steps=16), e)
+    px = np.concatenate([(K[0, 0] * voxel_size_m / (D[m] * obs.stride)) ** 2
+                         for _, m, D, K, _, _ in cast if m.any()] or [np.ones(1)])
+    per_voxel = (0.5 * s2 + e * e - corr * corr) / max(float(np.median(px)), 1.0)
+    out["shared_fraction"] = corr * corr / max(corr * corr + per_voxel, 1e-30)
+    return out
 
 
 #: Rounds of the noise fit's cut (3 sigma of the pair model, which holds the fitted noise).
@@ -439,9 +490,10 @@ _CUT_ROUNDS = 6
 def _pair_candidates(cast, obs: ObservationConfig, max_offset_px: float | None) -> list:
     """The noise fit's candidate pairs, per pair of cast frames (i, j): each cast pixel of i
     whose point lands on a cast pixel of j. Per pair of frames ``(shape_i, v, u, into, gap, s,
-    d)``: the pixels of i, the pixel of j each landed on (``cv width_j + cu``),
+    d, (i, j))``: the pixels of i, the pixel of j each landed on (``cv width_j + cu``),
     ``|D_j - z_j|`` (how far j's depth is from the point), the two frames' sensor sigma in
-    quadrature and ``d = r_i - r_j``. Which of them see one point is :func:`_cut_pairs`'s."""
+    quadrature, ``d = r_i - r_j`` and the two frames' indices in ``cast``. Which of them see
+    one point is :func:`_cut_pairs`'s."""
     pairs = []
     for i, (g_i, m_i, D_i, K_i, T_i, st_i) in enumerate(cast):
         v, u = np.nonzero(m_i)
@@ -452,8 +504,8 @@ def _pair_candidates(cast, obs: ObservationConfig, max_offset_px: float | None) 
         p_w = np.stack([(u * st_i - K_i[0, 2]) / K_i[0, 0] * dep,
                         (v * st_i - K_i[1, 2]) / K_i[1, 1] * dep, dep], 1) @ T_i[:3, :3].T \
             + T_i[:3, 3]
-        for g_j, m_j, D_j, K_j, T_j, st_j in cast[i + 1:]:  # each pair of frames once
-            p = (p_w - T_j[:3, 3]) @ T_j[:3, :3]  # into frame j's camera
+        for j, (g_j, m_j, D_j, K_j, T_j, st_j) in enumerate(cast[i + 1:], i + 1):
+            p = (p_w - T_j[:3, 3]) @ T_j[:3, :3]  # into frame j's camera (each pair once)
             zj = p[:, 2]
             front = zj > 0
             cu = np.full(len(p), -1)
@@ -473,18 +525,18 @@ def _pair_candidates(cast, obs: ObservationConfig, max_offset_px: float | None) 
             D_ok = D_j[cv[ok], cu[ok]]
             pairs.append((g_i.shape, v[ok], u[ok], cv[ok] * m_j.shape[1] + cu[ok],
                           np.abs(D_ok - zj[ok]), np.hypot(sd_i[ok], obs.axial_sigma_m(D_ok)),
-                          g_i[v[ok], u[ok]] - g_j[cv[ok], cu[ok]]))
+                          g_i[v[ok], u[ok]] - g_j[cv[ok], cu[ok]], (i, j)))
     return pairs
 
 
-def _cut_pairs(pairs: list, voxel_size_m: float, e: float):
+def _cut_pairs(pairs: list, voxel_size_m: float, e: float, shared: bool = True):
     """The candidate pairs whose frames agree within ``t = max(2 voxels, 3 sqrt(s^2 + 2
     e^2))``, 3 sigma of the pair's model for an extra noise ``e`` (else the two pixels may see
     different surfaces): their ``|d|``, ``s`` and ``t``, and the shared part's mean product
-    (see :func:`estimate_extra_noise`)."""
+    (see :func:`estimate_extra_noise`; 0 without ``shared``)."""
     d_all, s_all, t_all = [], [], []
     lag_sum, lag_n = 0.0, 0
-    for shape_i, v, u, into_j, gap, s, d in pairs:
+    for shape_i, v, u, into_j, gap, s, d, _ in pairs:
         tol = np.maximum(2.0 * voxel_size_m, 3.0 * np.sqrt(s * s + 2.0 * e * e))
         ok = gap < tol  # the same point, else not
         if not ok.any():
@@ -492,6 +544,8 @@ def _cut_pairs(pairs: list, voxel_size_m: float, e: float):
         d_all.append(d[ok])
         t_all.append(tol[ok])  # the pair was kept only if it agreed within this
         s_all.append(s[ok])
+        if not shared:
+            continue
         # neighbouring cast pixels of frame i paired with frame j: the product of their d
         # keeps what the pixels of a frame share (2 e_corr^2), not independent noise, where
         # they pair with two pixels of frame j (with one, seen at an angle, the product would
@@ -510,9 +564,10 @@ def _cut_pairs(pairs: list, voxel_size_m: float, e: float):
     return r, s, t, (lag_sum / lag_n if lag_n else 0.0)
 
 
-def _fit_extra(r: np.ndarray, s: np.ndarray, t: np.ndarray) -> float:
+def _fit_extra(r: np.ndarray, s: np.ndarray, t: np.ndarray, steps: int = 40) -> float:
     """The extra noise ``e >= 0`` whose truncated pair model puts half the pairs' ``|d|``
-    below their own (see :func:`estimate_extra_noise`); 0 when the sensor model alone does."""
+    below their own (see :func:`estimate_extra_noise`); 0 when the sensor model alone does.
+    ``steps`` bisections after the bracket (40: the root to ~1e-12 of it)."""
     from scipy.special import erf
 
     def stat(e):
@@ -527,7 +582,7 @@ def _fit_extra(r: np.ndarray, s: np.ndarray, t: np.ndarray) -> float:
     lo, hi = 0.0, max(float(np.median(r)) / 0.6744897501960817, 1e-6)
     while stat(hi) > 0.5 and hi < 1.0:  # heavy truncation: the root can lie further out
         hi *= 2.0
-    for _ in range(40):  # bisection: stat decreases with e
+    for _ in range(steps):  # bisection: stat decreases with e
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if stat(mid) > 0.5 else (lo, mid)
     return hi

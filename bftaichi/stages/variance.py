@@ -14,7 +14,8 @@ __all__ = ["estimate_variance"]
 
 def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
                       data: tuple | None = None,
-                      bias: tuple | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+                      bias: tuple | None = None,
+                      kappa: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """``(var, cov, stats)`` of ``system`` (:class:`~.prior.System`) by ``solver.probes``
     probes of ``solver.probe_method`` (``ijk`` (N, 3): the band's voxels, which lattice
     colouring needs).
@@ -59,6 +60,12 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
     rho)^2 rho B_ii`` (the blend's approximation of the sandwich, ``rho B_ii``). Only the
     excess counts: ``e^2 = max(b^2 - (1 - rho)^2 rho B_ii, 0)``, ``e`` with the sign of ``b``.
 
+    ``kappa`` (N,) (:func:`~.sharednoise.shared_noise_factor`; None: 1): how much more
+    variance the data leave than independent frames would, where frames share their noise.
+    The sandwich (the MAP's error under the noise) is scaled by it: ``blend`` gives ``B_ii
+    (kappa rho + (1 - rho)^2)``, ``blend-sampled`` ``kappa S + (1 - rho) max(B - S, 0)``, and
+    the bias's own noise is ``kappa`` times the above. ``posterior`` ignores it.
+
     The covariances are clipped to the final variances' bound.
     """
     from kernels.layout import CENTRE
@@ -76,13 +83,13 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
     var = np.maximum(var, floor)
     var_b = var
     if solver.variance == "blend" and data is not None:
-        var, cov, stats = _blend(system, var, cov, stats, data[1])
+        var, cov, stats = _blend(system, var, cov, stats, data[1], kappa)
     elif solver.variance == "blend-sampled" and data is not None:
-        var, cov, stats = _blend_sampled(system, solver, var, cov, stats, *data)
+        var, cov, stats = _blend_sampled(system, solver, var, cov, stats, *data, kappa)
     if bias is not None:
         if data is None:
             raise ValueError("the prior bias needs data = (W, D_ii): the data's share")
-        var, cov, stats = _add_bias(system, var_b, var, cov, stats, bias, data[1])
+        var, cov, stats = _add_bias(system, var_b, var, cov, stats, bias, data[1], kappa)
     nbr_var = _face_neighbours(system.nbr, var)
     bound = np.sqrt(var[:, None].astype(np.float64) * nbr_var).astype(np.float32)
     stats["n_cov_clipped"] = int(np.count_nonzero(np.abs(cov) > bound))
@@ -109,10 +116,11 @@ def _data_share(system, D_ii) -> np.ndarray:
     return np.clip(np.asarray(D_ii, np.float64) / q, 0.0, 1.0)
 
 
-def _blend(system, var_b, cov_b, stats, D_ii):
-    """``blend``: ``F^1/2 B F^1/2`` with ``F = diag(1 - rho + rho^2)``."""
+def _blend(system, var_b, cov_b, stats, D_ii, kappa=None):
+    """``blend``: ``F^1/2 B F^1/2`` with ``F = diag(kappa rho + (1 - rho)^2)`` (``1 - rho +
+    rho^2`` at ``kappa`` = 1)."""
     rho = _data_share(system, D_ii)
-    f = 1.0 - rho + rho * rho
+    f = 1.0 - rho + rho * rho if kappa is None else kappa * rho + (1.0 - rho) ** 2
     var = var_b.astype(np.float64) * f
     cov = cov_b.astype(np.float64) * np.sqrt(f[:, None] * _face_neighbours(system.nbr, f))
     stats = dict(stats, method=f"blend ({stats['method']}, local data share)",
@@ -120,8 +128,8 @@ def _blend(system, var_b, cov_b, stats, D_ii):
     return var.astype(np.float32), cov.astype(np.float32), stats
 
 
-def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii):
-    """``blend-sampled``: ``S + (1 - rho) max(B - S, 0)``, S by perturbation."""
+def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii, kappa=None):
+    """``blend-sampled``: ``kappa S + (1 - rho) max(B - S, 0)``, S by perturbation."""
     from kernels.probes import perturbation_moments
 
     var_s, cov_s, sand = perturbation_moments(system.S, system.nbr, W, n_probes=solver.probes,
@@ -131,6 +139,9 @@ def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii):
     prior_share = 1.0 - rho
     var = var_s + prior_share * np.maximum(var_b.astype(np.float64) - var_s, 0.0)
     cov = cov_s + prior_share[:, None] * (cov_b.astype(np.float64) - cov_s)
+    if kappa is not None:  # the sandwich under the noise the frames share
+        var = var + (kappa - 1.0) * var_s
+        cov = cov + (np.sqrt(kappa[:, None] * _face_neighbours(system.nbr, kappa)) - 1.0) * cov_s
     stats = dict(stats, method=f"blend ({stats['method']} and perturbation)",
                  converged=bool(stats["converged"] and sand["converged"]),
                  n_not_converged=stats["n_not_converged"] + sand["n_not_converged"],
@@ -140,12 +151,14 @@ def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii):
     return var.astype(np.float32), cov.astype(np.float32), stats
 
 
-def _add_bias(system, var_b, var, cov, stats, bias, D_ii):
+def _add_bias(system, var_b, var, cov, stats, bias, D_ii, kappa=None):
     """``var + e^2`` and ``cov_ij + e_i e_j``, ``e`` the prior's bias beyond the noise of its
     estimate (:func:`estimate_variance`)."""
     b, b_stats = bias
     rho = _data_share(system, D_ii)
     noise = (1.0 - rho) ** 2 * rho * var_b.astype(np.float64)
+    if kappa is not None:
+        noise = noise * kappa
     e = np.sign(b) * np.sqrt(np.maximum(b * b - noise, 0.0))
     var = (var.astype(np.float64) + e * e).astype(np.float32)
     cov = (cov.astype(np.float64) + e[:, None] * _face_neighbours(system.nbr, e)).astype(
