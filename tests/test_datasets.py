@@ -202,6 +202,10 @@ def test_frames_slice_and_subset_keep_original_indices(tmp_path):
     np.testing.assert_allclose(f.depth_m, _depth_mm(3) / 1000.0, rtol=1e-6)
     sub = ds.subset(slice(1, None))  # a view of a view still reports original indices
     assert [fr.index for fr in sub] == [3, 5]
+    picked = open_dataset(root).subset([0, 1, 4])  # positions: evalviews' blocks
+    assert picked.indices == [0, 1, 4] and [fr.index for fr in picked.subset([2])] == [4]
+    with pytest.raises(TypeError, match="slice or a list"):
+        ds.subset(1)
     assert [fr.index for fr in open_dataset(root)[::-3]] == [6, 3, 0]
     assert len(open_dataset(root)) == 7  # the parent is not changed by subsetting
     with pytest.raises(DataError, match="selects none"):

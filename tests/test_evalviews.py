@@ -39,6 +39,37 @@ def test_split_frames_holds_out_the_others():
         split_frames(Seq(range(7)), 1)
 
 
+def test_split_frames_in_blocks_keeps_the_held_out_views_away_in_time():
+    """block = 3: frames 0-2 and 6-8 fused, 3-5 and 9 held out; every other block by
+    default, and block = 1 is the interleaved split."""
+    class Seq(list):
+        def subset(self, s):
+            return Seq(self[s] if isinstance(s, slice) else [self[i] for i in s])
+
+    fused, held = split_frames(Seq(range(10)), 2, block=3)
+    assert list(fused) == [0, 1, 2, 6, 7, 8] and held == [3, 4, 5, 9]
+    fused, held = split_frames(Seq(range(12)), 3, block=2)
+    assert list(fused) == [0, 1, 6, 7] and held == [2, 3, 4, 5, 8, 9, 10, 11]
+    assert split_frames(Seq(range(7)), 2, block=1)[1] == split_frames(Seq(range(7)), 2)[1]
+    for bad in (0, -1, 2.5):
+        with pytest.raises(ValueError, match="block"):
+            split_frames(Seq(range(10)), 2, block=bad)
+    with pytest.raises(ValueError, match="too few"):
+        split_frames(Seq(range(10)), 2, block=10)
+
+
+def test_dataset_and_synthetic_subsets_take_positions():
+    """The frame sources the split views: a list of positions keeps the original indices."""
+    import bftaichi as bf
+    from bftaichi.running.pipeline import open_frames
+
+    cfg = bf.load_config(None, list(TINY_SCENE_SETS) + ["synthetic.n_views=8"])
+    frames = open_frames(cfg)
+    fused, held = split_frames(frames, 2, block=2)
+    assert held == [2, 3, 6, 7] and len(fused) == 4
+    np.testing.assert_array_equal(fused[2].depth_m, frames[4].depth_m)
+
+
 def test_evalviews_smoke_on_synthesised_frames(tmp_path, capsys):
     data = tmp_path / "data"
     sets = [a for s in TINY_SCENE_SETS for a in ("--set", s)]

@@ -3,7 +3,11 @@ ground-truth mesh, but every held-out depth frame is a measurement of the true s
 
 1. Split the frames: every ``every``-th frame (0, 2, 4, ... for ``every = 2``) is fused by the
    full pipeline (:func:`bftaichi.run`: TSDF bootstrap and posterior, outputs in ``out_dir``);
-   the others are held out (every ``held_out_stride``-th of them is evaluated).
+   the others are held out (every ``held_out_stride``-th of them is evaluated). With ``block
+   = B`` every ``every``-th block of ``B`` consecutive frames is fused instead
+   (:func:`split_frames`): a recorded trajectory's pose errors drift, so a held-out frame
+   between two fused ones shares most of theirs and flatters the sigma; a block keeps the
+   held-out views away in time, as where a map is used later.
 2. For each held-out frame, render depth at its pose from each reconstruction:
    - ``bftaichi``: the posterior mean's first ``mu = 0`` crossing through observed band cells
      (:func:`kernels.raycast.raycast_depth`), with the depth's standard deviation ``sigma_z``;
@@ -50,20 +54,33 @@ _BIN_M = 1e-4  # histogram bin of |error| for the median, metres
 _MAX_ERR_M = 2.0  # errors beyond this fall in the last bin (counted in the mean exactly)
 
 
-def split_frames(frames, every: int):
-    """``(fused, held_out)``: a view of the frame source at positions 0, every, 2 every, ...
-    (datasets split with ``subset``, synthetic sequences by index) and the other positions."""
+def split_frames(frames, every: int, block: int = 1):
+    """``(fused, held_out)``: a view of the frame source at the positions ``i`` with ``(i //
+    block) % every == 0`` (datasets split with ``subset``, synthetic sequences by index) and
+    the other positions. ``block = 1``: positions 0, every, 2 every, ... fused, the frames
+    between held out; ``block = B``: blocks of ``B`` consecutive frames, one fused and ``every
+    - 1`` held out in turn, so a held-out frame lies up to ``B (every - 1)`` frames from the
+    fused ones."""
     if every < 2:
         raise ConfigError(f"every = {every}: need at least 2 (one fused frame per held-out one)")
+    _check_block(block)
     n = len(frames)
-    if n < every:
-        raise ConfigError(f"{n} frames: too few to hold any out with every = {every}")
-    held = [i for i in range(n) if i % every]
+    if n <= block:
+        raise ConfigError(f"{n} frames: too few to hold any out with every = {every} and "
+                          f"block = {block}")
+    fused = [i for i in range(n) if (i // block) % every == 0]
+    held = [i for i in range(n) if (i // block) % every]
+    pick = slice(0, None, every) if block == 1 else fused
     if hasattr(frames, "subset"):
-        return frames.subset(slice(0, None, every)), held
+        return frames.subset(pick), held
     from ..running.pipeline import _SlicedSynthetic
 
-    return _SlicedSynthetic(frames, slice(0, None, every)), held
+    return _SlicedSynthetic(frames, pick), held
+
+
+def _check_block(block) -> None:
+    if not (isinstance(block, int) and block >= 1):
+        raise ConfigError(f"block = {block!r}: must be an integer >= 1 (frames per block)")
 
 
 #: Floor of the mean's slope along a held-out ray when its SDF sigma is turned into a depth
@@ -135,20 +152,24 @@ def _open3d_mesh(frames, cfg: Config):
 
 
 def evaluate_views(cfg: Config, out_dir, *, every: int = 2, held_out_stride: int = 1,
-                   open3d: bool = True, overwrite: bool = False, progress: bool = True) -> dict:
-    """Fuse every ``every``-th frame of ``cfg``'s scene into ``out_dir`` and score the held-out
-    frames (module docstring); write ``evalviews.json`` there and return its content. Holds
-    the folder's writer lock throughout (bftaichi.running.folder)."""
+                   block: int = 1, open3d: bool = True, overwrite: bool = False,
+                   progress: bool = True) -> dict:
+    """Fuse every ``every``-th frame (or block of ``block`` frames, :func:`split_frames`) of
+    ``cfg``'s scene into ``out_dir`` and score the held-out frames (module docstring); write
+    ``evalviews.json`` there and return its content. Holds the folder's writer lock throughout
+    (bftaichi.running.folder)."""
     from ..io import ensure_out_dir
     from ..running.folder import hold
 
     cfg.check()
+    _check_block(block)  # before the folder is made
     with hold(ensure_out_dir(out_dir)):
-        return _evaluate_views(cfg, out_dir, every, held_out_stride, open3d, overwrite, progress)
+        return _evaluate_views(cfg, out_dir, every, held_out_stride, block, open3d, overwrite,
+                               progress)
 
 
-def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open3d: bool,
-                    overwrite: bool, progress: bool) -> dict:
+def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, block: int,
+                    open3d: bool, overwrite: bool, progress: bool) -> dict:
     from kernels.raycast import raycast_depth
 
     from .. import backend
@@ -163,7 +184,7 @@ def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open
     if held_out_stride < 1:
         raise ConfigError(f"held_out_stride = {held_out_stride}: must be >= 1")
     frames = open_frames(cfg)
-    fused, held = split_frames(frames, every)
+    fused, held = split_frames(frames, every, block)
     held = held[::held_out_stride]
     cfg = copy.deepcopy(cfg)
     cfg.nbv.enabled = False
@@ -220,7 +241,7 @@ def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, open
         "source": report["source"], "voxel_size_m": vs, "trunc_m": cfg.tsdf.trunc_m,
         "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m,
         "frames": len(frames), "fused": len(fused), "held_out_evaluated": len(held),
-        "every": every, "held_out_stride": held_out_stride,
+        "every": every, "block": block, "held_out_stride": held_out_stride,
         "methods": {m: s.summary() for m, s in scores.items()},
         "calibration": {
             "pixels": cover["n"],

@@ -193,16 +193,20 @@ class Dataset(ABC):
         for i in range(len(self)):
             yield self[i]
 
-    def subset(self, s: slice) -> Dataset:
-        """A view of the frames selected by ``s`` (Python slice semantics on this dataset's frames).
+    def subset(self, s: slice | list[int]) -> Dataset:
+        """A view of the frames selected by ``s``: a slice (Python slice semantics on this
+        dataset's frames) or a list of positions in it.
 
         The view shares the files and settings; its frames keep their original ``Frame.index``
         (position in the full sequence), so ``ds.subset(slice(10, None, 5))[0].index == 10``.
         """
-        if not isinstance(s, slice):
-            raise TypeError(f"subset takes a slice, not {type(s).__name__}")
         view = copy.copy(self)
-        view._indices = self._indices[s]
+        if isinstance(s, slice):
+            view._indices = self._indices[s]
+        elif isinstance(s, (list, tuple)) and all(isinstance(i, int) for i in s):
+            view._indices = [self._indices[i] for i in s]
+        else:
+            raise TypeError(f"subset takes a slice or a list of positions, not {s!r:.60}")
         return view
 
     @property

@@ -64,9 +64,10 @@ def open_frames(cfg: Config):
 class _SlicedSynthetic:
     """A slice of a synthetic sequence that keeps the dataset's attributes."""
 
-    def __init__(self, ds, sl: slice):
+    def __init__(self, ds, sl: slice | list[int]):
         self._ds = ds
-        self._idx = list(range(len(ds)))[sl]
+        self._idx = (list(range(len(ds)))[sl] if isinstance(sl, slice)
+                     else [range(len(ds))[i] for i in sl])
         if not self._idx:
             raise DataError(f"scene.frames selects no frame of the {len(ds)} synthetic views")
         self.K, self.image_size, self.name = ds.K, ds.image_size, ds.name
