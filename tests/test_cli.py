@@ -350,6 +350,10 @@ def test_run_summary_compact_verbose_and_quiet(tmp_path, capsys):
                  "run.preview=false"]) == 0
     compact = capsys.readouterr().out
     assert "fscore@" in compact and "precision@" not in compact
+    fit = json.loads((tmp_path / "a" / "report.json").read_text())["solver"]["observations"][
+        "noise_fit"]
+    assert ("noise fit:" in compact) == (fit["sigma_extra_m"] > 0)  # said where it counts
+    assert "share it" not in compact  # synthetic poses: no pose error shared in time
     assert "seconds per stage" not in compact and "preview.html" not in compact
     assert main(["run", "-v", "--out", str(tmp_path / "b"), *sets_args()]) == 0
     verbose = capsys.readouterr().out

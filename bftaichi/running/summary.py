@@ -35,6 +35,13 @@ def print_summary(out: Path, report: dict, verbose: bool = False) -> None:
                    f"variance from {v['n_probes']} probes"
                    + (" and as many perturbations" if "perturbation" in v else "")
                    + f" ({s['posterior']:.2f} s)")
+        fit = report["solver"]["observations"].get("noise_fit") or {}
+        if fit.get("sigma_extra_m"):
+            L = fit.get("frames_sharing_noise") or 1.0
+            click.echo(f"noise fit: {1000 * fit['sigma_extra_m']:.1f} mm of depth noise per frame "
+                       "beyond the sensor model"
+                       + (f"; frames in a row share it, ~{L:.0f} per error, and sigma counts "
+                          "such a run as one frame" if L > 1 else ""))
         if verbose:
             sub = report["solver"]["seconds"]
             click.echo("posterior seconds: " + ", ".join(f"{k} {x:.2f}" for k, x in sub.items()))
