@@ -44,6 +44,8 @@ def frames_sharing_noise(pairs: list, cut, fit, e: float) -> dict:
     Returns ``{"frames_sharing_noise": L, "sharing_z": z or None, "sharing_length": l or
     None}``."""
     none = {"frames_sharing_noise": 1.0, "sharing_z": None, "sharing_length": None}
+    if e <= 0.0:  # no extra noise to share
+        return none
     spread = [p[-1][1] - p[-1][0] for p in pairs if p[-1][1] - p[-1][0] > 1]
     spacing = float(min(spread)) if spread else 1.0
     groups: dict[int, list] = {}
@@ -57,7 +59,7 @@ def frames_sharing_noise(pairs: list, cut, fit, e: float) -> dict:
         if len(r) >= MIN_GAP_PAIRS:
             gap = float(np.mean([p[-1][1] - p[-1][0] for p in groups[k]]))
             fits.append((groups[k], gap, len(r), fit(r, s, t)))
-    if len(fits) < 3 or e <= 0.0:
+    if len(fits) < 3:
         return none
     far = [p for f in fits[-max(1, len(fits) // 3):] for p in f[0]]
     e_far = fit(*cut(far))
