@@ -80,6 +80,11 @@ def test_chunked_solve_equals_the_monolithic_one(mono):
     a, b = post.extract_mesh(), mono.extract_mesh()
     assert chamfer(a, b, 20000) / mono.voxel_size ** 2 < 0.025
     assert post.cov is not None and np.isfinite(post.cov).all()
+    # one noise fit for the scene, reported whole (the frames' sharing in time included)
+    fit, fit0 = post.observations["noise_fit"], mono.observations["noise_fit"]
+    assert "frames_sharing_noise" in fit0
+    for k in ("sigma_extra_m", "frames_sharing_noise", "sharing_z", "shared_fraction"):
+        assert fit[k] == fit0[k], k
 
 
 def test_chunked_linear_part_equals_the_monolithic_one_to_half_the_bound():

@@ -338,10 +338,16 @@ def merge_stats(parts: list[dict], plan: ChunkPlan) -> dict:
     observations["note"] = "summed over the chunks: samples in a halo count in two chunks"
     extra = float(np.median([p["sigma_extra_m"] for p in parts]))
     corr = float(np.median([p["sigma_corr_m"] for p in parts]))
+    scene = parts[0]["observations"].get("noise_fit") or {}  # one fit for every chunk
     observations["noise_fit"] = {"sigma_extra_m": extra, "sigma_corr_m": corr,
+                                 **{k: scene[k] for k in _SCENE_FIT if k in scene},
                                  "per_chunk": [p["observations"].get("noise_fit") for p in parts]}
     return {"solver": solver, "variance": variance, "observations": observations,
             "sigma_extra_m": extra, "sigma_corr_m": corr}
+
+
+#: What the scene's noise fit says of its frames as a whole, the same in every chunk.
+_SCENE_FIT = ("frames_sharing_noise", "sharing_z", "sharing_length", "shared_fraction")
 
 
 def _linear(ijk: np.ndarray) -> np.ndarray:
