@@ -85,6 +85,11 @@ def test_evalviews_smoke_on_synthesised_frames(tmp_path, capsys):
         s = r["methods"][m]
         # noisy synthetic frames of the true scene: errors of a few mm, most pixels covered
         assert s["median_abs_m"] < 0.02 and s["completeness"] > 0.8, (m, s)
+    # the same pixels for every method: as many, each at most its own
+    common = r["methods_common_pixels"]
+    assert common["bftaichi"]["pixels"] == common["tsdf"]["pixels"] > 0
+    assert all(common[m]["pixels"] <= r["methods"][m]["pixels"] for m in common)
+    assert "pixels all predict" in printed
     c = r["calibration"]["coverage_normalised"]
     assert 0 < c[0] <= c[1] <= c[2] <= 1
     # the held-out normalisation uses the extra noise the run fitted to the fused frames

@@ -14,7 +14,9 @@ sigma; a block judges the map away in time from the frames it was fused from.
 
 Columns: median and mean absolute depth error on the pixels where both the method and the
 measurement have a depth, the fraction within 1 / 2 / 5 cm, completeness (predicted share of
-the valid measured pixels), and for bftaichi the coverage of its depth sigma (``|r| <= k
+the valid measured pixels), the median and mean again on the pixels every method predicts
+(a method that predicts more pixels, the hard ones included, is not judged on more), and for
+bftaichi the coverage of its depth sigma (``|r| <= k
 sqrt(sigma_z^2 + sigma_D^2)``, k = 1, 2, 3; bftaichi/evaluation/evalviews.py says exactly what is
 computed) and the mean Gaussian NLL of the residuals under that sigma minus the NLL under the
 best constant sigma (below 0: the per-pixel sigma is informative).
@@ -51,8 +53,9 @@ def main(argv=None) -> int:
     from bftaichi.evaluation.evalviews import evaluate_views
 
     lines = ["| voxel | method | median abs (mm) | mean abs (mm) | within 1 / 2 / 5 cm | "
-             "completeness | sigma coverage 1 / 2 / 3 (%) | NLL - const |",
-             "|---|---|---|---|---|---|---|---|"]
+             "completeness | on the pixels all predict: median / mean (mm) | "
+             "sigma coverage 1 / 2 / 3 (%) | NLL - const |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for voxel in (float(v) for v in args.voxels.split(",")):
         sets = ["scene.source=dataset", f"scene.data={args.data!r}".replace("'", '"'),
                 f"tsdf.voxel_size_m={voxel}", f"tsdf.trunc_m={2 * voxel}",
@@ -68,11 +71,14 @@ def main(argv=None) -> int:
         for m, s in r["methods"].items():
             if not s["pixels"]:
                 continue
+            c = r["methods_common_pixels"][m]
+            both = (f"{1000 * c['median_abs_m']:.2f} / {1000 * c['mean_abs_m']:.1f}"
+                    if c["pixels"] else "-")
             lines.append(f"| {voxel * 100:g} cm | {m} | {1000 * s['median_abs_m']:.2f} | "
                          f"{1000 * s['mean_abs_m']:.1f} | {s['within_1cm']:.3f} / "
                          f"{s['within_2cm']:.3f} / {s['within_5cm']:.3f} | "
-                         f"{s['completeness']:.4f} | {cov if m == 'bftaichi' else '-'} | "
-                         f"{nll if m == 'bftaichi' else '-'} |")
+                         f"{s['completeness']:.4f} | {both} | "
+                         f"{cov if m == 'bftaichi' else '-'} | {nll if m == 'bftaichi' else '-'} |")
         print(f"{voxel * 100:g} cm: {r['fused']} fused, {r['held_out_evaluated']} held out, "
               f"{r['seconds']}; {r['open3d']}", file=sys.stderr)
     table = "\n".join(lines)
