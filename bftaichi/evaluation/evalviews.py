@@ -19,9 +19,10 @@ ground-truth mesh, but every held-out depth frame is a measurement of the true s
    ``|z_pred - D|``: mean, median, and the fraction within 1, 2 and 5 cm; *completeness*: the
    fraction of the valid measured pixels for which the method predicts a depth. Each method is
    scored on its own predicted pixels, and again on the pixels every method predicts
-   (``methods_common_pixels``): a method that predicts more pixels, the hard ones at edges
-   and far away included, is then not judged on more. The median comes from a histogram of 0.1 mm bins (the
-   error of a median is at most 0.05 mm), so memory does not grow with the frames.
+   (``methods_common_pixels``; its completeness is their share of the measured pixels): a
+   method that predicts more pixels, the hard ones at edges and far away included, is then not
+   judged on more. The median comes from a histogram of 0.1 mm bins (the error of a median is
+   at most 0.05 mm), so memory does not grow with the frames.
 4. Calibration of bftaichi's sigma on real data: the held-out measurement is itself noisy, so
    the residual is normalised by both: ``r = (z_pred - D) / sqrt(sigma_z^2 + sigma_D^2)``,
    ``sigma_D^2 = (a + b (D - z0)^2)^2 + e^2``: the configured depth noise model
