@@ -48,11 +48,14 @@ def fits():
     white = np.random.default_rng(0).normal(0, 1, len(frames))
     drift = gaussian_filter1d(white, SPAN / np.sqrt(2), mode="wrap")
     unordered = bf.load_config(None, ["observation.in_time_order=false"]).observation
+    shuffle = np.random.default_rng(1).permutation(len(frames))
     return {"drift": _fit(cfg, frames, drift / drift.std() * RMS_M),
             "jitter": _fit(cfg, frames, white / white.std() * RMS_M),
             "none": _fit(cfg, frames, np.zeros(len(frames))),
             "unordered": _fit(replace(cfg, observation=unordered), frames,
-                              drift / drift.std() * RMS_M)}
+                              drift / drift.std() * RMS_M),
+            "shuffled": _fit(cfg, [frames[i] for i in shuffle],
+                             (drift / drift.std() * RMS_M)[shuffle])}
 
 
 def test_drifting_poses_share_their_error_over_many_frames(fits):
@@ -70,6 +73,12 @@ def test_independent_or_no_pose_error_is_not_shared(fits, kind):
     fit = fits[kind]
     assert fit["frames_sharing_noise"] == 1.0, fit
     assert shared_noise_factor(np.full(10, 40.0), fit) is None
+
+
+def test_drifting_poses_given_out_of_time_order_share_nothing(fits):
+    """The same drifting frames shuffled: neighbours in the list are no longer neighbours in
+    time, and the fit finds no sharing (L = 1) rather than inventing it."""
+    assert fits["shuffled"]["frames_sharing_noise"] == 1.0, fits["shuffled"]
 
 
 def test_frames_out_of_order_are_not_tested(fits):
