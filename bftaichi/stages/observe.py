@@ -13,6 +13,7 @@ import numpy as np
 
 from ..checks import check_choice, check_range
 from ..errors import ConfigError
+from .pairmodel import fit_extra
 
 __all__ = ["ObservationConfig", "make_observer", "observe", "free_space_rows",
            "estimate_extra_noise", "local_misfit", "FramePicks"]
@@ -440,7 +441,7 @@ def estimate_extra_noise(frames, band, obs: ObservationConfig, voxel_size_m: flo
             return {"sigma_extra_m": 0.0, "sigma_corr_m": 0.0, "pixels": int(len(r)),
                     "frames": int(len(picks)), "median_normalised_model": None,
                     "cut_rounds": rounds}
-        e_new = _fit_extra(r, s, t)
+        e_new = fit_extra(r, s, t)
         done = abs(e_new - e) <= 0.005 * max(e_new, 1e-6)
         e = e_new
         if done:
@@ -475,7 +476,7 @@ def _shared_in_time(frames, picks, cast, pairs, band, observed, obs, voxel_size_
             timed += [p[:-1] + ((int(at), int(at) + 1),)
                       for p in _pair_candidates([cast[i], after], obs, max_offset_px)]
     out = frames_sharing_noise(timed, lambda p: _cut_pairs(p, voxel_size_m, e, shared=False)[:3],
-                               lambda *rst: _fit_extra(*rst, steps=16), e)
+                               e)
     px = np.concatenate([(K[0, 0] * voxel_size_m / (D[m] * obs.stride)) ** 2
                          for _, m, D, K, _, _ in cast if m.any()] or [np.ones(1)])
     per_voxel = (0.5 * s2 + e * e - corr * corr) / max(float(np.median(px)), 1.0)
@@ -562,27 +563,3 @@ def _cut_pairs(pairs: list, voxel_size_m: float, e: float, shared: bool = True):
     s = np.concatenate(s_all) if s_all else np.zeros(0)
     t = np.concatenate(t_all) if t_all else np.zeros(0)
     return r, s, t, (lag_sum / lag_n if lag_n else 0.0)
-
-
-def _fit_extra(r: np.ndarray, s: np.ndarray, t: np.ndarray, steps: int = 40) -> float:
-    """The extra noise ``e >= 0`` whose truncated pair model puts half the pairs' ``|d|``
-    below their own (see :func:`estimate_extra_noise`); 0 when the sensor model alone does.
-    ``steps`` bisections after the bracket (40: the root to ~1e-12 of it)."""
-    from scipy.special import erf
-
-    def stat(e):
-        # median over the pairs of P(|d| <= r | |d| <= t) under N(0, s^2 + 2 e^2): a pair is
-        # kept only where its frames agree within t, so the kept |d| are a truncated normal's
-        # (without the truncation this is 0.5 exactly where median(r / scale) = 0.6745)
-        scale = np.sqrt(2.0 * (s * s + 2.0 * e * e))
-        return float(np.median(erf(r / scale) / np.maximum(erf(t / scale), 1e-300)))
-
-    if stat(0.0) <= 0.5:
-        return 0.0
-    lo, hi = 0.0, max(float(np.median(r)) / 0.6744897501960817, 1e-6)
-    while stat(hi) > 0.5 and hi < 1.0:  # heavy truncation: the root can lie further out
-        hi *= 2.0
-    for _ in range(steps):  # bisection: stat decreases with e
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if stat(mid) > 0.5 else (lo, mid)
-    return hi

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .pairmodel import fit_extra, pair_quantile
+
 __all__ = ["frames_sharing_noise", "shared_noise_factor"]
 
 #: Pairs a gap of picked frames needs before its noise is fitted on its own.
@@ -16,13 +18,13 @@ MIN_GAP_PAIRS = 300
 Z_SHARED = 4.0
 
 
-def frames_sharing_noise(pairs: list, cut, fit, e: float) -> dict:
+def frames_sharing_noise(pairs: list, cut, e: float) -> dict:
     """``L``, the frames in a row that one error of the extra noise ``e`` spans, from pairs of
     frames that see one point (:func:`~.observe.estimate_extra_noise`'s candidates, each
     ending with its two frames' positions ``(a, b)``, ``a < b``, in the fused sequence, their
     time order): the fit's frames spread over the sequence, and each of them with the frame
-    after it. ``cut(pairs)`` gives the pairs' ``|d|, s, t`` as the fit keeps them and ``fit(r,
-    s, t)`` the extra noise they hold.
+    after it. ``cut(pairs)`` gives the pairs' ``|d|, s, t`` as the fit keeps them; the extra
+    noise they hold is :func:`.pairmodel.fit_extra`'s.
 
     Two frames ``g = b - a`` apart differ by ``2 s^2 + 2 e^2 (1 - rho(g))``, ``rho`` the
     correlation of their extra noise: the noise ``e_g`` fitted to the pairs of one gap alone
@@ -58,11 +60,11 @@ def frames_sharing_noise(pairs: list, cut, fit, e: float) -> dict:
         r, s, t = cut(groups[k])
         if len(r) >= MIN_GAP_PAIRS:
             gap = float(np.mean([p[-1][1] - p[-1][0] for p in groups[k]]))
-            fits.append((groups[k], gap, len(r), fit(r, s, t)))
+            fits.append((groups[k], gap, len(r), _fit(r, s, t)))
     if len(fits) < 3:
         return none
     far = [p for f in fits[-max(1, len(fits) // 3):] for p in f[0]]
-    e_far = fit(*cut(far))
+    e_far = _fit(*cut(far))
     if e_far <= 0.0:
         return none
     z = _below_far(fits[0][0], far, cut, e_far)
@@ -79,19 +81,21 @@ def frames_sharing_noise(pairs: list, cut, fit, e: float) -> dict:
             "sharing_z": z, "sharing_length": ell}
 
 
+def _fit(r: np.ndarray, s: np.ndarray, t: np.ndarray) -> float:
+    """:func:`.pairmodel.fit_extra` to 16 bisections (~1e-5 of the bracket: enough for a
+    correlation)."""
+    return fit_extra(r, s, t, steps=16)
+
+
 def _below_far(near: list, far: list, cut, e_far: float) -> float:
     """The z-score of the near pairs' share below their model median at ``e_far`` against the
     far pairs' (clusters: the pairs of one pair of frames; see :func:`frames_sharing_noise`)."""
-    from scipy.special import erf
-
     def shares(pairs):  # per pair of frames: pairs below their model median, and all kept
         below, kept = [], []
         for p in pairs:
             r, s, t = cut([p])
             if len(r):
-                scale = np.sqrt(2.0 * (s * s + 2.0 * e_far * e_far))
-                u = erf(r / scale) / np.maximum(erf(t / scale), 1e-300)
-                below.append(np.count_nonzero(u < 0.5))
+                below.append(np.count_nonzero(pair_quantile(r, s, t, e_far) < 0.5))
                 kept.append(len(r))
         b, m = np.array(below, np.float64), np.array(kept, np.float64)
         p = b.sum() / m.sum()

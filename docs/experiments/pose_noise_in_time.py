@@ -45,6 +45,7 @@ def main(argv=None) -> int:
 
     import bftaichi as bf
     import bftaichi.stages.observe as ob
+    from bftaichi.stages.pairmodel import fit_extra
     from bftaichi.frame import local_frames
     from bftaichi.running.pipeline import open_frames
     from bftaichi.stages.band import build_band
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
         e = 0.0
         for _ in range(ob._CUT_ROUNDS):
             r, s, t, _shared = ob._cut_pairs(pairs, args.voxel, e)
-            e_new = ob._fit_extra(r, s, t)
+            e_new = fit_extra(r, s, t)
             done = abs(e_new - e) <= 0.005 * max(e_new, 1e-6)
             e = e_new
             if done:
