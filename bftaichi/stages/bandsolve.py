@@ -72,6 +72,7 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     if bias_on:  # the MAP's bias under its prior, estimated at the mean (step 6)
         bias = prior_bias(system, band, cfg.prior, cfg.band.stencil, vs, mean, cfg.solver)
         lap("bias")
+    system.compact = None  # the MAP's layout (prior_bias's): not the probes'
     kappa = shared_noise_factor(band.weight, noise)  # frames in a row share their noise
     var, cov, var_stats = estimate_variance(system, cfg.solver, band.ijk,          # step 6
                                             probes=variance, data=data, bias=bias,

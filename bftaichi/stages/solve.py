@@ -97,7 +97,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
     ``free_space`` (``passes, anchored, free_voxels``, ``carved_voxels``: those of ``carved``,
     which the averaged TSDF does not call free), ``residual_history`` (the last solve's)
-    and ``reason`` when PCG stopped early."""
+    and ``reason`` when PCG stopped early. ``system.compact`` is set to the solves' compact
+    layout of the system as returned (for :func:`prior_bias`)."""
     from kernels.compact import CompactStencil
     from kernels.layout import CENTRE
     from kernels.pcg import pcg
@@ -149,6 +150,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     # variance (step 6, on the same system) is that of the data and the prior without them
     S[active, CENTRE] -= k
     h[active] -= k * target[active]
+    compact.set_diagonal(S[:, CENTRE])  # the layout of the system as left: prior_bias's
+    system.compact = compact
     if reweight:  # the prior the variance and the bias estimate see
         system.curvature_weights = W
     stats = {"converged": info["converged"], "iterations": iterations,
@@ -186,7 +189,9 @@ def prior_bias(system, band, prior, stencil: int, voxel_size_m: float, mean: np.
     b0, far = prior_terms(P, band, prior, stencil, voxel_size_m, system.curvature_weights)
     force = apply_Q(P, band.nbr, mean.astype(np.float64), far=far) - b0
     del P, far
-    compact = CompactStencil(system.S, system.nbr, system.far, check=False)
+    compact, system.compact = system.compact, None  # solve_map's layout, then let it go
+    if compact is None:
+        compact = CompactStencil(system.S, system.nbr, system.far, check=False)
     b, info = pcg(system.S, system.nbr, force, None, tol=solver.probe_tol,
                   maxiter=solver.maxiter, far=system.far, compact=compact)
     b = -b
