@@ -128,10 +128,12 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
              depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
              var: ti.types.ndarray(dtype=ti.f32, ndim=1),
              sigma: ti.types.ndarray(dtype=ti.f32, ndim=2), slope_min: ti.f64,
-             with_var: ti.template()):
+             with_var: ti.template(), mask: ti.types.ndarray(dtype=ti.u8, ndim=2),
+             masked: ti.i32):
     """Predicted depth (camera z, metres) of every ``stride``-th pixel into ``depth`` (H, W),
     0 where the ray finds no crossing (module docstring, steps 1-3); with ``with_var``, its
-    standard deviation into ``sigma`` (step 4). One thread per pixel. Deterministic (pure
+    standard deviation into ``sigma`` (step 4); with ``masked``, only the pixels where
+    ``mask`` (H, W) is nonzero (the others 0). One thread per pixel. Deterministic (pure
     reads, one store per pixel and image)."""
     H, W = depth.shape[0], depth.shape[1]
     o = ray_origin(prm)
@@ -155,6 +157,8 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
         hit = ti.cast(0.0, ti.f64)
         hit_sigma = ti.cast(0.0, ti.f64)
         k = k0
+        if masked and mask[v, u] == 0:
+            k = k1  # not cast: no march
         while k < k1:
             z = z_min + ti.cast(k, ti.f64) * dz
             g = o + z * m
@@ -223,7 +227,7 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
                   observed: np.ndarray, voxel_size: float, K: np.ndarray, T_W_C: np.ndarray,
                   width: int, height: int, depth_min_m: float, depth_max_m: float,
                   step_voxels: float = 0.5, stride: int = 1, var: np.ndarray | None = None,
-                  slope_min: float = 0.3):
+                  slope_min: float = 0.3, mask: np.ndarray | None = None):
     """Predicted depth image of the surface ``mean = 0`` seen by a camera (module docstring).
 
     Args:
@@ -246,6 +250,8 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
             / max(d mu / d z, slope_min)`` (the SDF's uncertainty turned into depth along the
             ray by the mean's slope there: 1 head-on, smaller at grazing angles).
         slope_min: floor of that slope (no unit).
+        mask: optional (height, width) bool: cast only the pixels where it is True (the
+            others are 0, as if no surface were found): e.g. the pixels a caller will keep.
 
     Returns:
         (height, width) float32 camera depth (z_C) of the first front-facing zero crossing,
@@ -303,9 +309,15 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
         slope_min = check_positive("slope_min", slope_min)
     sigma = np.zeros((height, width) if with_var else (1, 1), np.float32)
     var32 = np.ascontiguousarray(var if with_var else np.zeros(1), np.float32)
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != (height, width) or mask.dtype != np.bool_:
+            raise ValueError(f"mask must be a ({height}, {width}) bool array, got "
+                             f"{mask.shape} {mask.dtype}")
+    mask8 = np.ascontiguousarray(np.zeros((1, 1), np.uint8) if mask is None else mask, np.uint8)
     if len(keys):
         _raycast(prm, np.ascontiguousarray(keys), np.ascontiguousarray(table, np.int32),
                  np.ascontiguousarray(mean, np.float32),
                  np.ascontiguousarray(observed, np.uint8), stride, depth, var32, sigma,
-                 float(slope_min), with_var)
+                 float(slope_min), with_var, mask8, int(mask is not None))
     return (depth, sigma) if with_var else depth

@@ -301,6 +301,20 @@ def test_deterministic(sphere):
     assert a.tobytes() == b.tobytes()
 
 
+def test_mask_casts_only_its_pixels_with_the_same_bytes(sphere):
+    full = sphere.cast(K_SPHERE, T_SPHERE, W, H, stride=2)
+    mask = np.zeros((H, W), bool)
+    mask[::3, ::5] = True  # every 3rd row and 5th column: some cast (stride 2), most not
+    masked = sphere.cast(K_SPHERE, T_SPHERE, W, H, stride=2, mask=mask)
+    assert (full[mask] > 0).sum() > 50
+    assert masked[mask].tobytes() == full[mask].tobytes()
+    assert not masked[~mask].any()
+    with pytest.raises(ValueError, match="mask"):
+        sphere.cast(K_SPHERE, T_SPHERE, W, H, mask=mask[:-1])
+    with pytest.raises(ValueError, match="mask"):
+        sphere.cast(K_SPHERE, T_SPHERE, W, H, mask=mask.astype(np.uint8))
+
+
 def test_input_validation(sphere):
     ok = dict(block_keys=sphere.keys, block_table=sphere.table, mean=sphere.mean,
               observed=sphere.observed, voxel_size=0.01, K=K_SPHERE, T_W_C=T_SPHERE,

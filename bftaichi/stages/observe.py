@@ -348,17 +348,20 @@ def _cast_frame(f, band, observed: np.ndarray, voxel_size_m: float, bootstrap_tr
                 depth_range_m: tuple[float, float], stride: int = 4) -> tuple:
     """The noise fit's view of frame ``f``: the bootstrap (``band``, its ``observed`` cells as
     uint8) ray cast at every ``step``-th pixel (``stride``, denser on frames of fewer than
-    ``_MIN_CAST stride^2`` pixels) and the residuals ``z_tsdf - D`` of the head-on pixels
-    within ``bootstrap_trunc_m``. Returns ``(residual, mask, D, K, T_W_C, step)``, the first
+    ``_MIN_CAST stride^2`` pixels) that is valid and head-on (:func:`_head_on`; the others are
+    not kept, so not cast: 0.5 s of the fit's 1.7 s at 2 cm on redkitchen) and the residuals
+    ``z_tsdf - D`` of those within ``bootstrap_trunc_m``. Returns ``(residual, mask, D, K, T_W_C, step)``, the first
     three at the cast pixels (see :func:`estimate_extra_noise`)."""
     from kernels.raycast import raycast_depth
 
     h, w = f.depth_m.shape
     step = int(max(1, min(stride, np.sqrt(h * w / _MIN_CAST))))
-    z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
-                      f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=step)
     D = np.asarray(f.depth_m, np.float64)
-    both = (z > 0) & (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=step)
+    head_on = (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=step)
+    z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
+                      f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=step,
+                      mask=head_on)  # the other pixels are not kept: not cast
+    both = (z > 0) & head_on
     res = np.where(both, z - D, 0.0)
     both &= np.abs(res) < bootstrap_trunc_m
     return (res[::step, ::step], both[::step, ::step], D[::step, ::step],
