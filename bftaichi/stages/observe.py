@@ -350,8 +350,8 @@ def _cast_frame(f, band, observed: np.ndarray, voxel_size_m: float, bootstrap_tr
     uint8) ray cast at every ``step``-th pixel (``stride``, denser on frames of fewer than
     ``_MIN_CAST stride^2`` pixels) that is valid and head-on (:func:`_head_on`; the others are
     not kept, so not cast: 0.5 s of the fit's 1.7 s at 2 cm on redkitchen) and the residuals
-    ``z_tsdf - D`` of those within ``bootstrap_trunc_m``. Returns ``(residual, mask, D, K, T_W_C, step)``, the first
-    three at the cast pixels (see :func:`estimate_extra_noise`)."""
+    ``z_tsdf - D`` of those within ``bootstrap_trunc_m``. Returns ``(residual, mask, D, K,
+    T_W_C, step)``, the first three at the cast pixels (see :func:`estimate_extra_noise`)."""
     from kernels.raycast import raycast_depth
 
     h, w = f.depth_m.shape
