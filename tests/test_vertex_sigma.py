@@ -268,3 +268,24 @@ def test_prior_bias_estimates_the_maps_bias(sphere):
     cos = est[near] @ actual[near] / np.linalg.norm(est[near]) / np.linalg.norm(actual[near])
     ratio = np.linalg.norm(est[near]) / np.linalg.norm(actual[near])
     assert cos > 0.9 and rel < 0.5 and 0.5 < ratio <= 1.0, (cos, rel, ratio)
+
+
+def test_bias_solve_on_the_maps_layout_equals_a_fresh_one(sphere):
+    """``prior_bias`` solves on the compact layout ``solve_map`` leaves (``System.compact``,
+    its free-space anchors taken out again) instead of building one: the same bits as a
+    layout built from the system afresh, after a MAP that did anchor voxels."""
+    import dataclasses
+
+    from bftaichi.stages.solve import prior_bias, solve_map
+
+    band, system, cfg = (sphere[k] for k in ("band", "system", "cfg"))
+    vs = cfg.tsdf.voxel_size_m
+    run = dataclasses.replace(system, S=system.S.copy(), h=system.h.copy(), compact=None)
+    mean, stats = solve_map(run, band.tsdf.astype(np.float64), cfg.solver, band,
+                            trunc_m=cfg.tsdf.trunc_m, voxel_size_m=vs, free=cfg.prior.free)
+    assert stats["free_space"]["anchored"] > 0 and run.compact is not None
+    fresh = dataclasses.replace(run, compact=None)
+    reused, _ = prior_bias(run, band, cfg.prior, cfg.band.stencil, vs, mean, cfg.solver)
+    assert run.compact is None  # let go after the solve
+    built, _ = prior_bias(fresh, band, cfg.prior, cfg.band.stencil, vs, mean, cfg.solver)
+    assert reused.tobytes() == built.tobytes()
