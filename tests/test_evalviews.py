@@ -81,6 +81,7 @@ def test_evalviews_smoke_on_synthesised_frames(tmp_path, capsys):
     assert "| bftaichi |" in printed and "| tsdf |" in printed
     r = json.loads((out / "evalviews.json").read_text())
     assert r["fused"] == 4 and r["held_out_evaluated"] == 4
+    assert r["every"] == 2 and r["block"] == 1  # the split as asked, recorded
     for m in ("bftaichi", "tsdf"):
         s = r["methods"][m]
         # noisy synthetic frames of the true scene: errors of a few mm, most pixels covered

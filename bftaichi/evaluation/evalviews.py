@@ -241,9 +241,9 @@ def _evaluate_views(cfg: Config, out_dir, every: int, held_out_stride: int, bloc
         for name, renderer in renderers.items():
             pred[name] = renderer.render(f.K, T, w, h)
             scores[name].add(pred[name], D)
-        every = np.logical_and.reduce([p > 0 for p in pred.values()])
+        all_predict = np.logical_and.reduce([p > 0 for p in pred.values()])
         for name, p in pred.items():
-            common[name].add(np.where(every, p, 0), D)
+            common[name].add(np.where(all_predict, p, 0), D)
     t_eval = time.perf_counter() - t2
     n = max(cover["n"], 1)
     result = {

@@ -357,7 +357,7 @@ def _cast_frame(f, band, observed: np.ndarray, voxel_size_m: float, bootstrap_tr
     h, w = f.depth_m.shape
     step = int(max(1, min(stride, np.sqrt(h * w / _MIN_CAST))))
     D = np.asarray(f.depth_m, np.float64)
-    head_on = (D > 0) & _head_on(D, np.asarray(f.K, np.float64), stride=step)
+    head_on = _head_on(D, np.asarray(f.K, np.float64), stride=step)  # valid pixels only
     z = raycast_depth(band.block_keys, band.block_table, band.tsdf, observed, voxel_size_m,
                       f.K, f.T_W_C, w, h, depth_range_m[0], depth_range_m[1], stride=step,
                       mask=head_on)  # the other pixels are not kept: not cast

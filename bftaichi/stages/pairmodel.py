@@ -1,7 +1,7 @@
 """The noise fit's model of a pair of frames that see one point
-(:func:`.observe.estimate_extra_noise`): their residuals differ by ``d ~ N(0, s^2 + 2 e^2)``, ``s`` the two frames' sensor noise in
-quadrature and ``e`` the extra noise of each, and a pair is kept only where ``|d| < t``, so
-the kept ``|d|`` are a normal's truncated at ``t``."""
+(:func:`.observe.estimate_extra_noise`): their residuals differ by ``d ~ N(0, s^2 + 2 e^2)``,
+``s`` the two frames' sensor noise in quadrature and ``e`` the extra noise of each, and a pair
+is kept only where ``|d| < t``, so the kept ``|d|`` are a normal's truncated at ``t``."""
 
 from __future__ import annotations
 
