@@ -1,0 +1,234 @@
+#!/usr/bin/env python
+"""Sigma against what noise draws show: how much of the error is noise, how much bias (issue
+15; a diagnosis).
+
+One development-suite case (``tools/suite.py``'s mesh and capture condition, ``--data``'s
+meshes) is fused ``--draws`` times, each with its own noise (``synthetic.seed``), and solved
+four ways (``--set`` overrides go to all four): the default model; ``solver.prior_bias=false``
+(the blend without the bias term: ``blend``); ``solver.variance=posterior
+solver.prior_bias=false`` (the probes' ``B = Q^-1``); ``solver.variance=blend-sampled
+solver.prior_bias=false``, from which the perturbation solves' sandwich ``S = Q^-1 D Q^-1``
+and the data share ``rho = D_ii / Q_ii`` are kept. The draws then show, per band voxel kept
+(observed) by every draw:
+
+- ``noise``: the variance of the posterior mean over the draws;
+- ``bias^2``: the squared difference between the draws' average mean and the true signed
+  distance, less the noise of that average;
+- ``mse = noise + bias^2``: what a calibrated variance equals on average.
+
+Two tables, their columns the means over the rows' voxels or edges in mm^2:
+
+1. the band voxels within ``--near`` voxels of the true surface, by quintiles of ``rho``;
+2. the grid edges the true surface crosses: the mean interpolated at the crossing (true value
+   0) against each variance interpolated there with its face covariance, ``(1 - t)^2 v0 + t^2
+   v1 + 2 t (1 - t) c01`` (the mesh vertices' sigma, DESIGN.md 3.7), and the 1-sigma coverage
+   of that value over all draws. Rows ``near``: the edges where every draw's value is within a
+   voxel, i.e. where the posterior has a surface and so its mesh has vertices (the suite's
+   vertex errors are measured there); ``far``: the true surface has no posterior surface
+   within a voxel (holes, bridged gaps), which the vertex errors never see.
+
+Usage::
+
+    python docs/experiments/sigma_monte_carlo.py suzanne sparse_far --draws 6
+    python docs/experiments/sigma_monte_carlo.py suzanne dense_near --draws 6 \
+        --set observation.local_noise=false --set observation.fit_noise=false
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tools"))
+sys.path.insert(0, str(ROOT))
+
+VARIANTS = {"default": [], "blend": ["solver.prior_bias=false"],
+            "B": ["solver.variance=posterior", "solver.prior_bias=false"],
+            "S": ["solver.variance=blend-sampled", "solver.prior_bias=false"]}
+CAPTURED = {}
+
+
+def _capture():
+    """Keep the sandwich ``S`` the perturbation solves estimate and the data share ``rho``
+    (the ``S`` variant's ``var`` is replaced by them: ``var`` = S, ``cov[:, 0]`` = rho)."""
+    import kernels.probes as probes
+    from bftaichi.stages import variance
+
+    moments, share = probes.perturbation_moments, variance._data_share
+
+    def perturbation_moments(*a, **k):
+        out = moments(*a, **k)
+        CAPTURED["S"] = np.asarray(out[0], np.float64)
+        CAPTURED["S_cov"] = np.asarray(out[1], np.float64)
+        return out
+
+    def data_share(*a, **k):
+        CAPTURED["rho"] = share(*a, **k)
+        return CAPTURED["rho"]
+
+    probes.perturbation_moments, variance._data_share = perturbation_moments, data_share
+
+
+def _keys(ijk) -> np.ndarray:
+    """One int64 per voxel (21 bits an axis)."""
+    c = np.asarray(ijk, np.int64) + (1 << 20)
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+def solve(sets):
+    """(post, gt) of one configuration, in memory (no files)."""
+    import bftaichi as bf
+    from bftaichi.reconstructor import Reconstructor
+    from bftaichi.running.pipeline import load_gt_mesh, open_frames
+
+    cfg = bf.load_config(None, sets)
+    frames = open_frames(cfg)
+    gt = load_gt_mesh(cfg, frames)
+    recon = Reconstructor(cfg)
+    for i in range(len(frames)):
+        f = frames[i]
+        recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name, keep=False)
+    return recon.solve(frames), gt
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("mesh")
+    ap.add_argument("condition")
+    ap.add_argument("--draws", type=int, default=6)
+    ap.add_argument("--near", type=float, default=1.0, help="voxels from the true surface")
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--set", dest="sets", action="append", default=[])
+    args = ap.parse_args(argv)
+
+    from suite import case_sets
+
+    from bftaichi.evaluation.metrics import band_sdf
+
+    _capture()
+    base = case_sets(args.mesh, args.condition, args.data) + args.sets + ["run.plots=false"]
+    runs = {k: [] for k in VARIANTS}
+    phi = None
+    for d in range(args.draws):
+        for name, extra in VARIANTS.items():
+            post, gt = solve(base + [f"synthetic.seed={d}"] + extra)
+            if name == "S":
+                post.var = CAPTURED["S"]
+                post.cov = np.repeat(CAPTURED["rho"][:, None], 3, axis=1)
+                post.S_cov = CAPTURED["S_cov"]
+            keys = _keys(post.ijk)
+            runs[name].append((keys, post))
+            if phi is None:
+                sdf = band_sdf(gt, post.origin, post.voxel_size, 0)
+                origin, vs = post.origin, post.voxel_size
+        print(f"draw {d}: {len(post.ijk)} band voxels", flush=True)
+    common = None
+    for name in VARIANTS:
+        for keys, post in runs[name]:
+            assert np.array_equal(post.origin, origin)
+            k = keys[post.weight > 0]
+            common = k if common is None else np.intersect1d(common, k)
+
+    def at(name, field):
+        out = []
+        for keys, post in runs[name]:
+            order = np.argsort(keys)
+            idx = order[np.searchsorted(keys, common, sorter=order)]
+            out.append(np.asarray(getattr(post, field), np.float64)[idx])
+        return np.array(out)  # (draws, n)
+
+    keys0, post0 = runs["default"][0]
+    order = np.argsort(keys0)
+    ijk = post0.ijk[order[np.searchsorted(keys0, common, sorter=order)]]
+    phi, valid = sdf((ijk.astype(np.float64) + 0.5) * vs)
+    near = valid & (np.abs(phi) <= args.near * vs)
+    mean = at("default", "mean")[:, near]
+    var = at("default", "var")[:, near].mean(0)
+    blend = at("blend", "var")[:, near].mean(0)
+    B = at("B", "var")[:, near].mean(0)
+    S = at("S", "var")[:, near].mean(0)
+    rho = at("S", "cov")[:, near, 0].mean(0)
+    phi = phi[near]
+    noise = mean.var(0, ddof=1)
+    bias2 = (mean.mean(0) - phi) ** 2 - noise / args.draws  # unbiased for the squared bias
+    mse = noise + bias2
+    mm2 = 1e6
+    print(f"\n{args.mesh}/{args.condition}: {near.sum()} voxels within {args.near} voxel of "
+          f"the surface in every draw, {args.draws} draws; means in mm^2")
+    cols = {"noise": noise, "S": S, "rho B": rho * B, "B": B, "bias^2": bias2,
+            "(1-rho)^2 B": (1 - rho) ** 2 * B, "bias term": var - blend, "var": var, "mse": mse}
+    print("| rho | voxels | " + " | ".join(cols) + " | S / noise | var / mse |")
+    print("|---|---|" + "---|" * (len(cols) + 2))
+    edges = np.quantile(rho, np.linspace(0, 1, 6))
+    for lo, hi in [(edges[0], edges[-1])] + list(zip(edges[:-1], edges[1:])):
+        m = (rho >= lo) & (rho <= hi)
+        print(f"| {lo:.2f}-{hi:.2f} | {m.sum()} | "
+              + " | ".join(f"{x[m].mean() * mm2:.3f}" for x in cols.values())
+              + f" | {S[m].mean() / noise[m].mean():.2f} | {var[m].mean() / mse[m].mean():.2f} |")
+
+    # On the grid edges the true surface crosses (both ends kept by every draw): the SDF
+    # interpolated at the true crossing, whose true value is 0, against its modelled variance
+    # ((1 - t)^2 v0 + t^2 v1 + 2 t (1 - t) c01, the mesh vertices' sigma of DESIGN.md 3.7).
+    phi_all, _ = sdf((ijk.astype(np.float64) + 0.5) * vs)
+    order = np.argsort(common)
+    skeys = common[order]
+    mean_all = at("default", "mean")
+    fields = {k: (at(k, "var"), at(k, "cov")) for k in ("default", "blend", "B")}
+    fields["S"] = (at("S", "var"), at("S", "S_cov"))
+    rho_all = at("S", "cov")[:, :, 0].mean(0)
+    S_all = at("S", "var").mean(0)
+    rows = []
+    for axis, step in enumerate((1 << 42, 1 << 21, 1)):
+        pos = np.searchsorted(skeys, common + step)
+        pos = np.minimum(pos, len(skeys) - 1)
+        has = skeys[pos] == common + step
+        i0 = np.flatnonzero(has)
+        i1 = order[pos[has]]
+        p0, p1 = phi_all[i0], phi_all[i1]
+        cross = (np.sign(p0) != np.sign(p1)) & (np.abs(p0 - p1) > 0)
+        i0, i1, p0, p1 = i0[cross], i1[cross], p0[cross], p1[cross]
+        t = p0 / (p0 - p1)
+        val = (1 - t) * mean_all[:, i0] + t * mean_all[:, i1]  # (draws, edges)
+        model = {}
+        for k, (v, c) in fields.items():
+            m = (1 - t) ** 2 * v[:, i0] + t ** 2 * v[:, i1] + 2 * t * (1 - t) * c[:, i0, axis]
+            model[k] = m.mean(0)
+        rows.append((val, model, 0.5 * (rho_all[i0] + rho_all[i1])))
+    val = np.concatenate([r[0] for r in rows], axis=1)
+    model = {k: np.concatenate([r[1][k] for r in rows]) for k in rows[0][1]}
+    erho = np.concatenate([r[2] for r in rows])
+    enoise = val.var(0, ddof=1)
+    ebias2 = val.mean(0) ** 2 - enoise / args.draws
+    emse = enoise + ebias2
+    print(f"\nat the true surface's crossings of {val.shape[1]} grid edges (mm^2; var/mse "
+          "and the 1-sigma coverage of |value| over all draws):")
+    cols = {"noise": enoise, "bias^2": ebias2, "mse": emse, **model}
+    print("| rho | edges | " + " | ".join(cols) + " | var/mse | cov1 (var) | cov1 (blend) |")
+    print("|---|---|" + "---|" * (len(cols) + 3))
+    # where every draw's surface passes within a voxel (|value| < h): where the mesh has its
+    # vertices; beyond, the true surface has no posterior surface near it (holes, bridged gaps)
+    close = np.all(np.abs(val) < vs, axis=0)
+    print(f"({close.sum()} of the edges have every draw's value within a voxel: the rows "
+          "'near'; the others 'far')")
+    edges = np.quantile(erho[close], np.linspace(0, 1, 6))
+    bins = [("all", np.ones_like(close)), ("far", ~close), ("near", close)] + [
+        (f"near {lo:.2f}-{hi:.2f}", close & (erho >= lo) & (erho <= hi))
+        for lo, hi in zip(edges[:-1], edges[1:])]
+    for label, m in bins:
+        lo = hi = label
+        c1 = np.mean(np.abs(val[:, m]) <= np.sqrt(model["default"][m]))
+        c1b = np.mean(np.abs(val[:, m]) <= np.sqrt(model["blend"][m]))
+        print(f"| {label} | {m.sum()} | "
+              + " | ".join(f"{x[m].mean() * mm2:.3f}" for x in cols.values())
+              + f" | {model['default'][m].mean() / emse[m].mean():.2f} | {100 * c1:.0f} % | "
+              f"{100 * c1b:.0f} % |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
