@@ -16,7 +16,7 @@ and the data share ``rho = D_ii / Q_ii`` are kept. The draws then show, per band
   distance, less the noise of that average;
 - ``mse = noise + bias^2``: what a calibrated variance equals on average.
 
-Two tables, their columns the means over the rows' voxels or edges in mm^2:
+Three tables, their columns the means over the rows' voxels or edges in mm^2:
 
 1. the band voxels within ``--near`` voxels of the true surface, by quintiles of ``rho``;
 2. the grid edges the true surface crosses: the mean interpolated at the crossing (true value
@@ -25,7 +25,9 @@ Two tables, their columns the means over the rows' voxels or edges in mm^2:
    of that value over all draws. Rows ``near``: the edges where every draw's value is within a
    voxel, i.e. where the posterior has a surface and so its mesh has vertices (the suite's
    vertex errors are measured there); ``far``: the true surface has no posterior surface
-   within a voxel (holes, bridged gaps), which the vertex errors never see.
+   within a voxel (holes, bridged gaps), which the vertex errors never see;
+3. the near edges' signed bias by the true SDF's Laplacian times the voxel size (> 0 convex),
+   from the voxels whose six face neighbours every draw keeps.
 
 Usage::
 
@@ -227,6 +229,45 @@ def main(argv=None) -> int:
               + " | ".join(f"{x[m].mean() * mm2:.3f}" for x in cols.values())
               + f" | {model['default'][m].mean() / emse[m].mean():.2f} | {100 * c1:.0f} % | "
               f"{100 * c1b:.0f} % |")
+
+    # The bias against the true surface's curvature: the Laplacian of the true SDF (twice the
+    # mean curvature of its level sets; > 0 convex, < 0 concave) at the edge's two voxels,
+    # times the voxel size, from the face neighbours the common set holds.
+    lap = np.full(len(common), np.nan)
+    acc, cnt = np.zeros(len(common)), np.zeros(len(common))
+    for step in (1 << 42, 1 << 21, 1):
+        lo_ = np.searchsorted(skeys, common - step)
+        hi_ = np.searchsorted(skeys, common + step)
+        lo_, hi_ = np.minimum(lo_, len(skeys) - 1), np.minimum(hi_, len(skeys) - 1)
+        ok = (skeys[lo_] == common - step) & (skeys[hi_] == common + step)
+        acc[ok] += phi_all[order[lo_[ok]]] + phi_all[order[hi_[ok]]] - 2 * phi_all[ok]
+        cnt[ok] += 1
+    full = cnt == 3
+    lap[full] = acc[full] / vs  # sum of second differences / h^2, times h: per voxel
+    curv = []
+    for axis, step in enumerate((1 << 42, 1 << 21, 1)):
+        pos = np.minimum(np.searchsorted(skeys, common + step), len(skeys) - 1)
+        has = skeys[pos] == common + step
+        i0 = np.flatnonzero(has)
+        i1 = order[pos[has]]
+        p0, p1 = phi_all[i0], phi_all[i1]
+        cross = (np.sign(p0) != np.sign(p1)) & (np.abs(p0 - p1) > 0)
+        curv.append(0.5 * (lap[i0[cross]] + lap[i1[cross]]))
+    curv = np.concatenate(curv)
+    ok = close & np.isfinite(curv)
+    bias = val.mean(0)
+    print(f"\nsigned bias at the near crossings by the true SDF's Laplacian x voxel (> 0: convex; "
+          f"{ok.sum()} edges with both voxels' 6 neighbours kept)")
+    print("| h lap phi | edges | mean bias (mm) | rms bias (mm) | rms noise (mm) | "
+          "rms var default (mm) |")
+    print("|---|---|---|---|---|---|")
+    qs = np.quantile(curv[ok], np.linspace(0, 1, 8))
+    for lo, hi in zip(qs[:-1], qs[1:]):
+        m = ok & (curv >= lo) & (curv <= hi)
+        print(f"| {lo:+.3f} .. {hi:+.3f} | {m.sum()} | {1e3 * bias[m].mean():+.3f} | "
+              f"{1e3 * np.sqrt(np.mean(bias[m] ** 2)):.3f} | "
+              f"{1e3 * np.sqrt(enoise[m].mean()):.3f} | "
+              f"{1e3 * np.sqrt(model['default'][m].mean()):.3f} |")
     return 0
 
 
