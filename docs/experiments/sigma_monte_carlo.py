@@ -182,7 +182,8 @@ def main(argv=None) -> int:
     mean_all = at("default", "mean")
     fields = {k: (at(k, "var"), at(k, "cov")) for k in ("default", "blend", "B")}
     fields["S"] = (at("S", "var"), at("S", "S_cov"))
-    rho_all = at("S", "cov")[:, :, 0].mean(0)
+    rho_draws = at("S", "cov")[:, :, 0]
+    rho_all = rho_draws.mean(0)
     S_all = at("S", "var").mean(0)
     rows = []
     for axis, step in enumerate((1 << 42, 1 << 21, 1)):
@@ -196,14 +197,30 @@ def main(argv=None) -> int:
         i0, i1, p0, p1 = i0[cross], i1[cross], p0[cross], p1[cross]
         t = p0 / (p0 - p1)
         val = (1 - t) * mean_all[:, i0] + t * mean_all[:, i1]  # (draws, edges)
+        # the two ends' noise over the draws: their variances and covariance
+        a0, a1 = mean_all[:, i0], mean_all[:, i1]
+        ends = np.stack([a0.var(0, ddof=1), a1.var(0, ddof=1),
+                         ((a0 - a0.mean(0)) * (a1 - a1.mean(0))).sum(0) / (len(a0) - 1)])
         model = {}
         for k, (v, c) in fields.items():
             m = (1 - t) ** 2 * v[:, i0] + t ** 2 * v[:, i1] + 2 * t * (1 - t) * c[:, i0, axis]
             model[k] = m.mean(0)
-        rows.append((val, model, 0.5 * (rho_all[i0] + rho_all[i1])))
+        # the blend's two parts, each with B's correlation: rho B (its noise part) and
+        # (1 - rho)^2 B (its prior part)
+        vb, cb = fields["B"]
+        r0, r1 = rho_draws[:, i0], rho_draws[:, i1]
+        for k, f0, f1 in (("rho B", r0, r1), ("(1-rho)^2 B", (1 - r0) ** 2, (1 - r1) ** 2)):
+            m = ((1 - t) ** 2 * f0 * vb[:, i0] + t ** 2 * f1 * vb[:, i1]
+                 + 2 * t * (1 - t) * np.sqrt(f0 * f1) * cb[:, i0, axis])
+            model[k] = m.mean(0)
+        mv = {k: np.stack([v[:, i0].mean(0), v[:, i1].mean(0), c[:, i0, axis].mean(0)])
+              for k, (v, c) in fields.items()}
+        rows.append((val, model, 0.5 * (rho_all[i0] + rho_all[i1]), ends, mv))
     val = np.concatenate([r[0] for r in rows], axis=1)
     model = {k: np.concatenate([r[1][k] for r in rows]) for k in rows[0][1]}
     erho = np.concatenate([r[2] for r in rows])
+    ends = np.concatenate([r[3] for r in rows], axis=1)
+    mends = {k: np.concatenate([r[4][k] for r in rows], axis=1) for k in rows[0][4]}
     enoise = val.var(0, ddof=1)
     ebias2 = val.mean(0) ** 2 - enoise / args.draws
     emse = enoise + ebias2
@@ -229,6 +246,20 @@ def main(argv=None) -> int:
               + " | ".join(f"{x[m].mean() * mm2:.3f}" for x in cols.values())
               + f" | {model['default'][m].mean() / emse[m].mean():.2f} | {100 * c1:.0f} % | "
               f"{100 * c1b:.0f} % |")
+
+    # The correlation of the two ends of a crossing edge (one voxel each side of the surface):
+    # over the draws (sum of covariances / sqrt of the sums of variances over the edges) and
+    # in each model (its face covariance the same way).
+    def corr(e, m):
+        return e[2][m].sum() / np.sqrt(e[0][m].sum() * e[1][m].sum())
+
+    print("\ncorrelation of the two voxels across the surface at the near crossings: draws "
+          + ", ".join(f"{k} " for k in mends))
+    for label, m in bins:
+        if label == "far":
+            continue
+        print(f"| {label} | draws {corr(ends, m):+.2f} | "
+              + " | ".join(f"{k} {corr(mends[k], m):+.2f}" for k in mends) + " |")
 
     # The bias against the true surface's curvature: the Laplacian of the true SDF (twice the
     # mean curvature of its level sets; > 0 convex, < 0 concave) at the edge's two voxels,
