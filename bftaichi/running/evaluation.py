@@ -61,7 +61,7 @@ class RunEvaluation:
         self.gt, self.cfg, self.voxel_size_m = gt, eval_cfg, float(voxel_size_m)
         self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="bftaichi-eval")
         self._plots = plots
-        self._prepared = self._tsdf = self._post = None
+        self._prepared = self._tsdf = self._post = self._band = None
         self._origin = None
 
     def __enter__(self):
@@ -92,31 +92,42 @@ class RunEvaluation:
         own = _own_mesh(mesh)
         self._tsdf = self._pool.submit(lambda: self._prepared.result()[1].distances(own))
 
+    def add_band(self, post) -> None:
+        """Measure the posterior's band against the ground truth (as soon as it is solved,
+        before its mesh is extracted); :meth:`add_posterior` does it if this was not called."""
+        self._band = self._pool.submit(self._judge_band, post)
+
     def add_posterior(self, post, post_mesh) -> None:
         """Measure the posterior's mesh (local frame, with its vertex ``eval.vertex_sigma``
-        attribute) and band against the ground truth: the distances on one thread, the vertex
-        errors and the band on the other."""
+        attribute) and band against the ground truth: the distances on one thread, the band
+        and the vertex errors on the other."""
+        if self._band is None:
+            self.add_band(post)
         own = _own_mesh(post_mesh)  # the distances' (one thread per object)
         vertices = np.array(post_mesh.vertices, np.float64)  # the vertex errors'
         sigma = np.array(post_mesh.vertex_attributes[self.cfg.vertex_sigma], np.float64)
         distances = self._pool.submit(lambda: self._prepared.result()[1].distances(own))
-        self._post = (distances, self._pool.submit(self._judge_posterior, post, vertices, sigma))
+        self._post = (distances, self._pool.submit(self._judge_vertices, vertices, sigma))
         if self._plots:  # by the first thread free (not beside the posterior: its Taichi front
             self._pool.submit(_import_plotting)  # end needs the GIL too)
 
-    def _judge_posterior(self, post, vertices, sigma):
-        from ..evaluation.metrics import (band_sdf, band_uncertainty, uncertainty_metrics,
-                                          vertex_errors)
+    def _judge_band(self, post):
+        from ..evaluation.metrics import band_sdf, band_uncertainty
 
-        gt_local, _, sdf = self._prepared.result()
+        _, _, sdf = self._prepared.result()
+        if sdf is None or not np.array_equal(np.asarray(post.origin, np.float64), self._origin):
+            sdf = band_sdf(self.gt, post.origin, self.voxel_size_m, self.cfg.seed)
+        return band_uncertainty(post, self.gt, self.cfg.near_voxels, self.cfg.seed, sdf)
+
+    def _judge_vertices(self, vertices, sigma):
+        from ..evaluation.metrics import uncertainty_metrics, vertex_errors
+
+        gt_local = self._prepared.result()[0]
         errors = uncertainty = None
         if len(sigma) >= 2:  # vertex_uncertainty's rule, with the errors kept for the plots
             errors = vertex_errors(vertices, gt_local)
             uncertainty = uncertainty_metrics(errors, sigma, np.zeros_like(errors))
-        if sdf is None or not np.array_equal(np.asarray(post.origin, np.float64), self._origin):
-            sdf = band_sdf(self.gt, post.origin, self.voxel_size_m, self.cfg.seed)
-        band = band_uncertainty(post, self.gt, self.cfg.near_voxels, self.cfg.seed, sdf)
-        return errors, uncertainty, band
+        return errors, uncertainty
 
     def results(self) -> dict:
         """``{"distances": {name: (d_pg, d_gp) or None}, "uncertainty", "band_uncertainty",
@@ -126,6 +137,6 @@ class RunEvaluation:
                "band_uncertainty": None, "vertex_errors": None}
         if self._post is not None:
             out["distances"]["mesh.ply"] = self._post[0].result()
-            errors, out["uncertainty"], out["band_uncertainty"] = self._post[1].result()
-            out["vertex_errors"] = errors
+            out["vertex_errors"], out["uncertainty"] = self._post[1].result()
+            out["band_uncertainty"] = self._band.result()
         return out

@@ -229,19 +229,19 @@ def _run_stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progr
                 memory: dict, checks, update=None):
     """The stages of :func:`run`, writing into the staging folder ``out``; ``checks``: what
     :func:`~bftaichi.plausibility.check_inputs` found. With a ground truth, its metrics are
-    computed beside the stages (:class:`~.evaluation.RunEvaluation`)."""
+    computed beside the stages, in a worker process (:class:`~.evalworker.EvalWorker`)."""
     if gt is None:
         return _stages(cfg, frames, None, out, timer, t_start, progress, memory, checks, update)
-    from .evaluation import RunEvaluation
+    from .evalworker import EvalWorker
 
-    with RunEvaluation(gt, cfg.eval, cfg.tsdf.voxel_size_m, plots=cfg.run.plots) as evaluation:
+    with EvalWorker(gt, cfg.eval, cfg.tsdf.voxel_size_m, plots=cfg.run.plots) as evaluation:
         return _stages(cfg, frames, gt, out, timer, t_start, progress, memory, checks, update,
                        evaluation)
 
 
 def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress: bool,
             memory: dict, checks, update=None, evaluation=None):
-    """:func:`_run_stages`' body (``evaluation``: a started-later RunEvaluation, or None)."""
+    """:func:`_run_stages`' body (``evaluation``: an EvalWorker to start, or None)."""
     with timer("init"):
         backend.init(cfg.run.arch)
     recon = Reconstructor(cfg)
@@ -301,6 +301,8 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
         with timer("posterior"):
             post = recon.solve(frames, frame_iter=reader)  # steps 2-6
         timer.seconds["posterior"] = round(timer.seconds["posterior"] - (reader.wait_s - wait0), 4)
+        if evaluation is not None:  # the band against the truth, while its mesh is extracted
+            evaluation.add_band(post)
         if cfg.run.strict and not post.solver["converged"]:
             m = post.solver
             raise SolverError(
@@ -337,6 +339,12 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
                            vertex_colors=post_colors, origin=recon.origin)
             write_npz(out / "band.npz", **post.band_arrays())
         save_config(cfg, out / "config.toml")
+    if cfg.run.plots and evaluation is not None and post is not None:
+        # the posterior's own plots, while the worker still measures it against the truth
+        evaluation.plots({"scene": cfg.scene.name, "config": cfg.to_dict(),
+                          "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m},
+                          "solver": {"map": post.solver}}, out, post,
+                         which=("sigma_histogram", "pcg_residual"))
     metrics, distances, judged = {}, {}, {}
     if evaluation is not None:
         from ..evaluation.metrics import metrics_from_distances
@@ -406,7 +414,9 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
         report["seconds"]["nbv"] = timer.seconds["nbv"]
         report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
     write_json(out / "report.json", report)
-    if cfg.run.plots:
+    if cfg.run.plots and evaluation is not None:  # in the worker, beside the preview
+        evaluation.plots(report, out, post)
+    elif cfg.run.plots:
         from .plots import write_run_plots
 
         with timer("plots"):
@@ -419,6 +429,10 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
         with timer("preview"):
             write_preview(out, title=out.parent.name)  # out: the staging folder in OUT
         report["seconds"]["preview"] = timer.seconds["preview"]
+    if cfg.run.plots and evaluation is not None:
+        with timer("plots"):  # what is left of them once the preview is written
+            evaluation.wait_plots()
+        report["seconds"]["plots"] = timer.seconds["plots"]
     if cfg.run.plots or cfg.run.preview:
         report["seconds"]["total"] = round(time.perf_counter() - t_start, 4)
         write_json(out / "report.json", report)

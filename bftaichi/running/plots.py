@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import BftaichiError
 from ..evaluation.metrics import threshold_curves
 
-__all__ = ["write_run_plots", "curve_thresholds_mm", "coverage_curve", "save_png"]
+__all__ = ["write_run_plots", "PLOTS", "curve_thresholds_mm", "coverage_curve", "save_png"]
 
 #: The run's meshes, in plotting order, with their legend labels.
 MESHES = {"mesh.ply": "posterior mean (mesh.ply)",
@@ -228,9 +228,13 @@ def _plot_pcg_residual(solver: dict, report: dict, path: Path) -> Path:
     return save_png(fig, path, tight=False)
 
 
+#: The plots :func:`write_run_plots` writes, in its order (``plots/<name>.png``).
+PLOTS = ("precision_recall", "fscore", "sigma_histogram", "calibration", "pcg_residual")
+
+
 def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None,
                     distances: dict | None = None,
-                    vertex_errors: np.ndarray | None = None) -> list[Path]:
+                    vertex_errors: np.ndarray | None = None, which=PLOTS) -> list[Path]:
     """Write the diagnostic PNGs of the run in ``out_dir`` into ``out_dir / "plots"``; return
     their paths, in the order of the module's list (plots whose inputs are absent are skipped).
 
@@ -247,6 +251,8 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
         vertex_errors: the exact errors of ``mesh.ply``'s vertices the run already computed
             for its ``uncertainty`` (:func:`~bftaichi.evaluation.metrics.vertex_errors`, in
             the vertices' order); default: computed here from ``gt``.
+        which: the names (:data:`PLOTS`) of the plots to write, e.g. those without the ground
+            truth while it is still being measured; default all.
 
     Raises:
         BftaichiError naming the missing files when ``out_dir`` does not hold the run, or when
@@ -265,14 +271,18 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
     missing = [n for n in names if not (out / n).is_file()]
     if missing:
         raise BftaichiError(f"{out}: missing {', '.join(missing)}: not the folder of this run")
-    if solved and post is None:
+    if solved and post is None and "sigma_histogram" in which:
         from ..posterior import Posterior
 
         post = Posterior.load(out / "band.npz")
+    unknown = set(which) - set(PLOTS)
+    if unknown:
+        raise BftaichiError(f"write_run_plots: no plot {', '.join(sorted(unknown))} "
+                            f"(choose from {', '.join(PLOTS)})")
     plots = ensure_out_dir(out / "plots")
     ev = report["config"]["eval"]
     written = []
-    if gt is not None:
+    if gt is not None and {"precision_recall", "fscore"} & set(which):
         thresholds = curve_thresholds_mm(report["tsdf"]["voxel_size_m"], ev["thresholds_mm"])
         curves = {}
         for name in names:
@@ -281,22 +291,25 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
                                    int(ev["seed"])))
             if d is not None:
                 curves[name] = threshold_curves(*d, thresholds)
-        if curves:
+        if curves and "precision_recall" in which:
             written.append(_plot_precision_recall(curves, report, plots / "precision_recall.png"))
+        if curves and "fscore" in which:
             written.append(_plot_fscore(curves, report, plots / "fscore.png"))
-    if solved:
+    if solved and {"sigma_histogram", "calibration", "pcg_residual"} & set(which):
         _, _, attrs = read_mesh_ply(out / "mesh.ply")
-        written.append(_plot_sigma_histogram(post, attrs.get("sigma"), report,
-                                             plots / "sigma_histogram.png"))
+        if "sigma_histogram" in which:
+            written.append(_plot_sigma_histogram(post, attrs.get("sigma"), report,
+                                                 plots / "sigma_histogram.png"))
         pairs = None
-        if gt is not None and attrs.get("sigma") is not None and len(attrs["sigma"]) >= 2:
+        if ("calibration" in which and gt is not None and attrs.get("sigma") is not None
+                and len(attrs["sigma"]) >= 2):
             if vertex_errors is None or len(vertex_errors) != len(attrs["sigma"]):
                 v, _, _ = read_mesh_ply(out / "mesh.ply")
                 vertex_errors = exact_errors(v, gt)
             pairs = np.asarray(vertex_errors, np.float64), np.asarray(attrs["sigma"], np.float64)
         if pairs is not None:
             written.append(_plot_calibration(*pairs, report, plots / "calibration.png"))
-        if report["solver"]["map"].get("residual_history"):
+        if "pcg_residual" in which and report["solver"]["map"].get("residual_history"):
             written.append(_plot_pcg_residual(report["solver"]["map"], report,
                                               plots / "pcg_residual.png"))
     return written
