@@ -195,6 +195,9 @@ def _shutdown() -> None:
         pid, _worker_pid = _worker_pid, None
     if pool is None:
         return
+    if pid is None:  # not started yet (or failed to): let it exit the usual way
+        pool.shutdown(wait=True, cancel_futures=True)
+        return
     pool.shutdown(wait=False, cancel_futures=True)
     for child in multiprocessing.active_children():
         if child.pid == pid:
