@@ -27,7 +27,8 @@ Three tables, their columns the means over the rows' voxels or edges in mm^2:
    vertex errors are measured there); ``far``: the true surface has no posterior surface
    within a voxel (holes, bridged gaps), which the vertex errors never see;
 3. the near edges' signed bias by the true SDF's Laplacian times the voxel size (> 0 convex),
-   from the voxels whose six face neighbours every draw keeps.
+   from the voxels whose six face neighbours every draw keeps; beside it the bootstrap TSDF's
+   value at the crossing, the same way.
 
 Usage::
 
@@ -180,6 +181,9 @@ def main(argv=None) -> int:
     order = np.argsort(common)
     skeys = common[order]
     mean_all = at("default", "mean")
+    tsdf_all = np.array([np.asarray(p.band.tsdf, np.float64)[order0[np.searchsorted(
+        k, common, sorter=order0)]] for k, p in runs["default"]
+        for order0 in [np.argsort(k)]])
     fields = {k: (at(k, "var"), at(k, "cov")) for k in ("default", "blend", "B")}
     fields["S"] = (at("S", "var"), at("S", "S_cov"))
     rho_draws = at("S", "cov")[:, :, 0]
@@ -197,6 +201,7 @@ def main(argv=None) -> int:
         i0, i1, p0, p1 = i0[cross], i1[cross], p0[cross], p1[cross]
         t = p0 / (p0 - p1)
         val = (1 - t) * mean_all[:, i0] + t * mean_all[:, i1]  # (draws, edges)
+        boot = (1 - t) * tsdf_all[:, i0] + t * tsdf_all[:, i1]  # the bootstrap's, the same way
         # the two ends' noise over the draws: their variances and covariance
         a0, a1 = mean_all[:, i0], mean_all[:, i1]
         ends = np.stack([a0.var(0, ddof=1), a1.var(0, ddof=1),
@@ -215,10 +220,11 @@ def main(argv=None) -> int:
             model[k] = m.mean(0)
         mv = {k: np.stack([v[:, i0].mean(0), v[:, i1].mean(0), c[:, i0, axis].mean(0)])
               for k, (v, c) in fields.items()}
-        rows.append((val, model, 0.5 * (rho_all[i0] + rho_all[i1]), ends, mv))
+        rows.append((val, model, 0.5 * (rho_all[i0] + rho_all[i1]), ends, mv, boot))
     val = np.concatenate([r[0] for r in rows], axis=1)
     model = {k: np.concatenate([r[1][k] for r in rows]) for k in rows[0][1]}
     erho = np.concatenate([r[2] for r in rows])
+    eboot = np.concatenate([r[5] for r in rows], axis=1)
     ends = np.concatenate([r[3] for r in rows], axis=1)
     mends = {k: np.concatenate([r[4][k] for r in rows], axis=1) for k in rows[0][4]}
     enoise = val.var(0, ddof=1)
@@ -289,16 +295,18 @@ def main(argv=None) -> int:
     bias = val.mean(0)
     print(f"\nsigned bias at the near crossings by the true SDF's Laplacian x voxel (> 0: convex; "
           f"{ok.sum()} edges with both voxels' 6 neighbours kept)")
+    tbias = eboot.mean(0)
     print("| h lap phi | edges | mean bias (mm) | rms bias (mm) | rms noise (mm) | "
-          "rms var default (mm) |")
-    print("|---|---|---|---|---|---|")
+          "rms var default (mm) | TSDF: mean bias | rms bias |")
+    print("|---|---|---|---|---|---|---|---|")
     qs = np.quantile(curv[ok], np.linspace(0, 1, 8))
     for lo, hi in zip(qs[:-1], qs[1:]):
         m = ok & (curv >= lo) & (curv <= hi)
         print(f"| {lo:+.3f} .. {hi:+.3f} | {m.sum()} | {1e3 * bias[m].mean():+.3f} | "
               f"{1e3 * np.sqrt(np.mean(bias[m] ** 2)):.3f} | "
               f"{1e3 * np.sqrt(enoise[m].mean()):.3f} | "
-              f"{1e3 * np.sqrt(model['default'][m].mean()):.3f} |")
+              f"{1e3 * np.sqrt(model['default'][m].mean()):.3f} | "
+              f"{1e3 * tbias[m].mean():+.3f} | {1e3 * np.sqrt(np.mean(tbias[m] ** 2)):.3f} |")
     return 0
 
 
