@@ -79,10 +79,9 @@ def write_heldout(out: Path, names=HELDOUT) -> Path:
     folder = Path(out) / "meshes"
     folder.mkdir(parents=True, exist_ok=True)
     for name in names:
-        mesh = heldout_mesh(name)
-        mesh.visual = type(mesh.visual)() if hasattr(mesh, "visual") else None
-        (folder / f"{name}.obj").write_text(mesh.export(file_type="obj", include_texture=False,
-                                                        include_normals=False))
+        obj = heldout_mesh(name).export(file_type="obj", include_texture=False,
+                                        include_normals=False)
+        (folder / f"{name}.obj").write_text(obj)
     return Path(out)
 
 

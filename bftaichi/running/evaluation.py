@@ -43,13 +43,10 @@ def _own_mesh(mesh):
                            faces=np.array(mesh.faces), process=False)
 
 
-def _import_plotting() -> None:
-    import matplotlib.figure  # noqa: F401  (the plots' first figure then costs no import)
-
-
 class RunEvaluation:
     """The metrics of one run against its ground-truth mesh ``gt`` (world coordinates),
-    configured by ``eval_cfg`` (``[eval]``); ``plots``: import the plotting library ahead.
+    configured by ``eval_cfg`` (``[eval]``). (:class:`~.evalworker.EvalWorker` runs it in
+    a worker process, whose start-up imports the plotting library.)
 
     Call in order: :meth:`start` once the grid's origin is known, :meth:`add_tsdf`,
     :meth:`add_posterior` (full runs), then :meth:`results`. Use as a context manager: leaving
@@ -57,10 +54,9 @@ class RunEvaluation:
     behind. An exception in a job is raised by :meth:`results`.
     """
 
-    def __init__(self, gt, eval_cfg, voxel_size_m: float, plots: bool = False):
+    def __init__(self, gt, eval_cfg, voxel_size_m: float):
         self.gt, self.cfg, self.voxel_size_m = gt, eval_cfg, float(voxel_size_m)
         self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="bftaichi-eval")
-        self._plots = plots
         self._prepared = self._tsdf = self._post = self._band = None
         self._origin = None
 
@@ -108,8 +104,6 @@ class RunEvaluation:
         sigma = np.array(post_mesh.vertex_attributes[self.cfg.vertex_sigma], np.float64)
         distances = self._pool.submit(lambda: self._prepared.result()[1].distances(own))
         self._post = (distances, self._pool.submit(self._judge_vertices, vertices, sigma))
-        if self._plots:  # by the first thread free (not beside the posterior: its Taichi front
-            self._pool.submit(_import_plotting)  # end needs the GIL too)
 
     def _judge_band(self, post):
         from ..evaluation.metrics import band_sdf, band_uncertainty

@@ -88,12 +88,11 @@ def _mesh(vertices, faces, attributes=None):
                            vertex_attributes=attributes or {})
 
 
-def _start(token: int, gt_vertices, gt_faces, eval_cfg, voxel_size_m: float, plots: bool,
-           origin) -> None:
+def _start(token: int, gt_vertices, gt_faces, eval_cfg, voxel_size_m: float, origin) -> None:
     from .evaluation import RunEvaluation
 
     gt = _mesh(gt_vertices, gt_faces)
-    evaluation = RunEvaluation(gt, eval_cfg, voxel_size_m, plots=plots)
+    evaluation = RunEvaluation(gt, eval_cfg, voxel_size_m)
     evaluation.start(origin)
     _RUNS[token] = {"evaluation": evaluation, "gt": gt, "judged": None}
 
@@ -218,7 +217,7 @@ class EvalWorker:
         self._pool = _executor(plots)
         self._token = next(_tokens)
         self._gt = (np.asarray(gt.vertices, np.float64), np.asarray(gt.faces))
-        self._cfg, self._voxel_size_m, self._plots = eval_cfg, float(voxel_size_m), plots
+        self._cfg, self._voxel_size_m = eval_cfg, float(voxel_size_m)
         self._jobs: list = []
         self._plot_jobs: list = []
         self._plotted: set = set()
@@ -258,7 +257,7 @@ class EvalWorker:
 
     def start(self, origin) -> None:
         self._submit(_start, self._token, *self._gt, self._cfg, self._voxel_size_m,
-                     self._plots, np.asarray(origin, np.float64).copy())
+                     np.asarray(origin, np.float64).copy())
 
     def add_tsdf(self, mesh) -> None:
         self._submit(_add_tsdf, self._token, np.asarray(mesh.vertices, np.float64),

@@ -339,10 +339,12 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
                            vertex_colors=post_colors, origin=recon.origin)
             write_npz(out / "band.npz", **post.band_arrays())
         save_config(cfg, out / "config.toml")
+    tsdf_info = {"voxel_size_m": cfg.tsdf.voxel_size_m,
+                 "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m}
     if cfg.run.plots and evaluation is not None and post is not None:
-        # the posterior's own plots, while the worker still measures it against the truth
-        evaluation.plots({"scene": cfg.scene.name, "config": cfg.to_dict(),
-                          "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m},
+        # the posterior's own plots (what they read of the report), while the worker still
+        # measures it against the truth
+        evaluation.plots({"scene": cfg.scene.name, "config": cfg.to_dict(), "tsdf": tsdf_info,
                           "solver": {"map": post.solver}}, out, post,
                          which=("sigma_histogram", "pcg_residual"))
     metrics, distances, judged = {}, {}, {}
@@ -385,8 +387,7 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
                   (["map_not_converged"] if not post.solver["converged"] else [])
                   + ([f"{post.variance['n_not_converged']}_probes_not_converged"]
                      if post.variance.get("n_not_converged") else [])),
-        "tsdf": {"voxel_size_m": cfg.tsdf.voxel_size_m,
-                 "bootstrap_trunc_m": cfg.tsdf.bootstrap_trunc_m},
+        "tsdf": tsdf_info,
         # world position of the local grid (band.npz ijk); meshes, cameras and NBV poses are
         # world coordinates
         "origin_m": recon.origin.tolist(),

@@ -268,21 +268,21 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
                             "with scene, tsdf, solver and config")
     solved = report["solver"] is not None
     names = [n for n in MESHES if solved or n != "mesh.ply"]
+    want = set(which)
+    if want - set(PLOTS):
+        raise BftaichiError(f"write_run_plots: no plot {', '.join(sorted(want - set(PLOTS)))} "
+                            f"(choose from {', '.join(PLOTS)})")
     missing = [n for n in names if not (out / n).is_file()]
     if missing:
         raise BftaichiError(f"{out}: missing {', '.join(missing)}: not the folder of this run")
-    if solved and post is None and "sigma_histogram" in which:
+    if solved and post is None and "sigma_histogram" in want:
         from ..posterior import Posterior
 
         post = Posterior.load(out / "band.npz")
-    unknown = set(which) - set(PLOTS)
-    if unknown:
-        raise BftaichiError(f"write_run_plots: no plot {', '.join(sorted(unknown))} "
-                            f"(choose from {', '.join(PLOTS)})")
     plots = ensure_out_dir(out / "plots")
     ev = report["config"]["eval"]
     written = []
-    if gt is not None and {"precision_recall", "fscore"} & set(which):
+    if gt is not None and {"precision_recall", "fscore"} & want:
         thresholds = curve_thresholds_mm(report["tsdf"]["voxel_size_m"], ev["thresholds_mm"])
         curves = {}
         for name in names:
@@ -291,17 +291,17 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
                                    int(ev["seed"])))
             if d is not None:
                 curves[name] = threshold_curves(*d, thresholds)
-        if curves and "precision_recall" in which:
+        if curves and "precision_recall" in want:
             written.append(_plot_precision_recall(curves, report, plots / "precision_recall.png"))
-        if curves and "fscore" in which:
+        if curves and "fscore" in want:
             written.append(_plot_fscore(curves, report, plots / "fscore.png"))
-    if solved and {"sigma_histogram", "calibration", "pcg_residual"} & set(which):
+    if solved and {"sigma_histogram", "calibration", "pcg_residual"} & want:
         _, _, attrs = read_mesh_ply(out / "mesh.ply")
-        if "sigma_histogram" in which:
+        if "sigma_histogram" in want:
             written.append(_plot_sigma_histogram(post, attrs.get("sigma"), report,
                                                  plots / "sigma_histogram.png"))
         pairs = None
-        if ("calibration" in which and gt is not None and attrs.get("sigma") is not None
+        if ("calibration" in want and gt is not None and attrs.get("sigma") is not None
                 and len(attrs["sigma"]) >= 2):
             if vertex_errors is None or len(vertex_errors) != len(attrs["sigma"]):
                 v, _, _ = read_mesh_ply(out / "mesh.ply")
@@ -309,7 +309,7 @@ def write_run_plots(report: dict, out_dir: str | os.PathLike, post=None, gt=None
             pairs = np.asarray(vertex_errors, np.float64), np.asarray(attrs["sigma"], np.float64)
         if pairs is not None:
             written.append(_plot_calibration(*pairs, report, plots / "calibration.png"))
-        if "pcg_residual" in which and report["solver"]["map"].get("residual_history"):
+        if "pcg_residual" in want and report["solver"]["map"].get("residual_history"):
             written.append(_plot_pcg_residual(report["solver"]["map"], report,
                                               plots / "pcg_residual.png"))
     return written
