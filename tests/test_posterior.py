@@ -189,7 +189,8 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     assert (bent[hit] < 0).sum() >= 6  # false surfaces in free space
     cfg.solver.tol = 1e-8
     fixed, info = solve_map(System(S=S, nbr=nbr, h=h, far=far), bent, cfg.solver, band,
-                            trunc_m=tau, voxel_size_m=vs, free=1000.0)
+                            trunc_m=tau, voxel_size_m=vs, free=1000.0,
+                            bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m)
     stats = info["free_space"]
     assert info["converged"] and stats["passes"] >= 1
     assert stats["anchored"] >= (bent[hit] < 0.5 * vs).sum()

@@ -282,7 +282,8 @@ def test_bias_solve_on_the_maps_layout_equals_a_fresh_one(sphere):
     vs = cfg.tsdf.voxel_size_m
     run = dataclasses.replace(system, S=system.S.copy(), h=system.h.copy(), compact=None)
     mean, stats = solve_map(run, band.tsdf.astype(np.float64), cfg.solver, band,
-                            trunc_m=cfg.tsdf.trunc_m, voxel_size_m=vs, free=cfg.prior.free)
+                            trunc_m=cfg.tsdf.trunc_m, voxel_size_m=vs, free=cfg.prior.free,
+                            bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m)
     assert stats["free_space"]["anchored"] > 0 and run.compact is not None
     fresh = dataclasses.replace(run, compact=None)
     reused, _ = prior_bias(run, band, cfg.prior, cfg.band.stencil, vs, mean, cfg.solver)

@@ -65,6 +65,7 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
     lap("prior")
     mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
+                                bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,
                                 voxel_size_m=vs, free=cfg.prior.free,
                                 prior=cfg.prior, carved=carved)
     lap("map")

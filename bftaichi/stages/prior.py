@@ -38,8 +38,9 @@ class PriorConfig:
     """Free-space constraint strength, per voxel^2 (0 = off). A voxel the bootstrap saw as free
     space (``tsdf > tau``, observed) cannot hold the surface: its SDF is positive. That is an
     inequality, so it is enforced by an active set (:mod:`.solve`): after the MAP, every such
-    voxel whose mean is below half a voxel is anchored to its TSDF value with this strength,
-    and the MAP is solved again. 1000 per voxel^2 is about the data term of 40 frames at 2 cm;
+    voxel whose mean is below half a voxel is anchored with this strength, to half a voxel
+    or, the farther beyond ``tau`` its TSDF puts it, the more toward that TSDF value
+    (:func:`.solve.anchor_target`), and the MAP is solved again. 1000 per voxel^2 is about the data term of 40 frames at 2 cm;
     10 was too weak to hold the voxels against straddling samples."""
 
     carve: float = 0.4

@@ -77,16 +77,43 @@ ROBUST_PASSES = 2
 """Reweighting steps of the robust curvature prior (``prior.curvature_scale > 0``)."""
 
 
+def anchor_target(tsdf: np.ndarray, trunc_m: float, bootstrap_trunc_m: float,
+                  voxel_size_m: float) -> np.ndarray:
+    """(N,) float32: what a free-space anchor (:func:`solve_map`) pulls a voxel's SDF to,
+    from its bootstrap TSDF ``tsdf`` (clamped at ``bootstrap_trunc_m``, ``tau_b``).
+
+    The inequality says only ``sdf >= h/2``. The projective TSDF says more the farther in
+    front it puts the voxel, but it overstates the distance wherever the frames saw the
+    surface obliquely or curving away from the rays: at ``tau`` (``trunc_m``, where a voxel starts to count as free) it is trusted not at
+    all, at ``tau_b`` (every frame saw the voxel beyond the truncation) fully::
+
+        t = clip((tsdf - tau) / (tau_b - tau), 0, 1)
+        target = h/2 + t (tsdf - h/2),  at least h/2
+
+    On a sphere seen with perfect depth, anchors at the TSDF value made 90 % of the surface's
+    squared error; anchors at ``h/2`` everywhere let false surfaces of real frames stay half
+    a voxel from space other frames saw as free (docs/measurements.md, "The anchors' target
+    between the bound and the projective value")."""
+    half = np.float32(0.5 * voxel_size_m)
+    tsdf = np.asarray(tsdf, np.float32)
+    span = max(bootstrap_trunc_m - trunc_m, 1e-12)
+    t = np.clip((tsdf - np.float32(trunc_m)) / np.float32(span), 0.0, 1.0).astype(np.float32)
+    return np.maximum(half + t * (tsdf - half), half).astype(np.float32)
+
+
 def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: float,
-              voxel_size_m: float, free: float, passes: int = 4, prior=None,
-              carved: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+              bootstrap_trunc_m: float, voxel_size_m: float, free: float, passes: int = 4,
+              prior=None, carved: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """The MAP of ``system`` (:class:`~.prior.System`) from ``x0``, then the free-space
     inequality: a voxel the bootstrap saw as free (observed, ``tsdf > trunc_m``), or one the
     rays carved (``carved``, (N,) bool: :class:`kernels.carve.FreeSpaceCounter`), whose mean
-    fell below half a voxel is anchored to its TSDF value, at least half a voxel (a carved
-    voxel's average may be negative), with strength ``free`` per voxel^2 (in
+    fell below half a voxel is anchored (:func:`anchor_target`: at least half a voxel, more
+    the farther beyond ``trunc_m`` its TSDF puts it), with strength ``free`` per voxel^2 (in
     ``system.S`` and ``system.h``, in place) and the MAP is solved again, warm-started, up to
-    ``passes`` times (``free = 0``: no constraint). The anchors are taken out of ``system``
+    ``passes`` times (``free = 0``: no constraint); an anchored voxel whose mean is still
+    below 0 (the data pull harder than its anchor) has its target raised by what it lacks of
+    half a voxel (an augmented-Lagrangian step), so the inequality holds where it matters: no
+    surface in free space. The anchors are taken out of ``system``
     again at the end: they enforce an inequality on the mean and are no measurement, so the
     variance (step 6) is that of the data and the prior (kept in, they made the sigma of the
     vertices beside anchored voxels far smaller than their errors: docs/measurements.md,
@@ -95,7 +122,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     curvature prior is reweighted at the mean and the MAP solved again, :data:`ROBUST_PASSES`
     times, each followed by the free-space passes. Returns ``(mean, stats)``: ``converged``,
     ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
-    ``free_space`` (``passes, anchored, free_voxels``, ``carved_voxels``: those of ``carved``,
+    ``free_space`` (``passes, anchored``, ``lifted``: target raises summed over the passes,
+    ``free_voxels``, ``carved_voxels``: those of ``carved``,
     which the averaged TSDF does not call free), ``residual_history`` (the last solve's)
     and ``reason`` when PCG stopped early. ``system.compact`` is set to the solves' compact
     layout of the system as returned (for :func:`prior_bias`)."""
@@ -114,11 +142,11 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
                    far=system.far, compact=compact)
 
     mean, info = solve(x0)
-    iterations, n_pass, n_free, n_anchored = info["iterations"], 0, 0, 0
+    iterations, n_pass, n_free, n_anchored, n_lifted = info["iterations"], 0, 0, 0, 0
     free_mask = band.observed & (band.tsdf > trunc_m)
     if carved is not None:
         free_mask |= carved
-    target = np.maximum(band.tsdf, np.float32(0.5 * voxel_size_m))  # = tsdf where tsdf > tau
+    target = anchor_target(band.tsdf, trunc_m, bootstrap_trunc_m, voxel_size_m)
     active = np.zeros(len(band), bool)
     k = np.float32(free / voxel_size_m ** 2)
     reweight = prior is not None and prior.curvature > 0 and prior.curvature_scale > 0
@@ -135,12 +163,19 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
             iterations += info["iterations"]
         for n_pass in range(1, passes + 1) if free > 0 else ():
             viol = free_mask & ~active & (mean < 0.5 * voxel_size_m)
-            if not viol.any():
+            # an anchor is soft: where the data pull harder, its voxel may stay below 0, the
+            # surface in free space; its target is raised by what it lacks of the bound
+            lifted = active & (mean < 0)
+            if not viol.any() and not lifted.any():
                 n_pass -= 1
                 break
             active |= viol
             S[viol, CENTRE] += k
             h[viol] += k * target[viol]
+            lift = (0.5 * voxel_size_m - mean[lifted]).astype(np.float32)
+            target[lifted] += lift
+            n_lifted += int(lifted.sum())
+            h[lifted] += k * lift
             compact.set_diagonal(S[:, CENTRE])
             mean, info = solve(mean)
             iterations += info["iterations"]
@@ -156,7 +191,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         system.curvature_weights = W
     stats = {"converged": info["converged"], "iterations": iterations,
              "relative_residual": info["relative_residual"]}
-    stats["free_space"] = {"passes": n_pass, "anchored": n_anchored, "free_voxels": n_free,
+    stats["free_space"] = {"passes": n_pass, "anchored": n_anchored, "lifted": n_lifted,
+                           "free_voxels": n_free,
                            "carved_voxels": int(carved.sum()) if carved is not None else 0}
     if "reason" in info:
         stats["reason"] = info["reason"]
