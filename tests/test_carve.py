@@ -174,3 +174,19 @@ def test_free_space_anchors_do_not_push_a_perfectly_seen_surface():
             assert post.solver["free_space"]["anchored"] > 0  # the constraint did act
     assert rms["free"] < 0.3 * h  # a surface the data pin down
     assert rms["constrained"] <= 1.1 * rms["free"], rms
+
+
+def test_anchor_target_runs_from_the_bound_to_the_projective_value():
+    """A free-space anchor pulls to half a voxel where the TSDF barely calls the voxel free
+    (``tsdf <= tau``), to the TSDF's own value where every frame saw it beyond the truncation
+    (``tau_b``), and in between never below the bound nor above the TSDF, rising with it."""
+    from bftaichi.stages.solve import anchor_target
+
+    h, tau, tau_b = 0.01, 0.02, 0.04
+    tsdf = np.linspace(-tau_b, tau_b, 801).astype(np.float32)
+    t = anchor_target(tsdf, tau, tau_b, h)
+    assert t.dtype == np.float32 and t.shape == tsdf.shape
+    np.testing.assert_allclose(t[tsdf <= tau], 0.5 * h, rtol=1e-6)
+    assert abs(t[-1] - tau_b) < 1e-7
+    assert (t >= 0.5 * h - 1e-7).all() and (t <= np.maximum(tsdf, 0.5 * h) + 1e-7).all()
+    assert (np.diff(t) >= -1e-7).all()

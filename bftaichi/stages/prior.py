@@ -40,8 +40,9 @@ class PriorConfig:
     inequality, so it is enforced by an active set (:mod:`.solve`): after the MAP, every such
     voxel whose mean is below half a voxel is anchored with this strength, to half a voxel
     or, the farther beyond ``tau`` its TSDF puts it, the more toward that TSDF value
-    (:func:`.solve.anchor_target`), and the MAP is solved again. 1000 per voxel^2 is about the data term of 40 frames at 2 cm;
-    10 was too weak to hold the voxels against straddling samples."""
+    (:func:`.solve.anchor_target`), and the MAP is solved again. 1000 per voxel^2 is about
+    the data term of 40 frames at 2 cm; 10 was too weak to hold the voxels against straddling
+    samples."""
 
     carve: float = 0.4
     """Free space seen by the rays (0 = off): a voxel also counts as free space for the

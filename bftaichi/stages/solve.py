@@ -84,8 +84,9 @@ def anchor_target(tsdf: np.ndarray, trunc_m: float, bootstrap_trunc_m: float,
 
     The inequality says only ``sdf >= h/2``. The projective TSDF says more the farther in
     front it puts the voxel, but it overstates the distance wherever the frames saw the
-    surface obliquely or curving away from the rays: at ``tau`` (``trunc_m``, where a voxel starts to count as free) it is trusted not at
-    all, at ``tau_b`` (every frame saw the voxel beyond the truncation) fully::
+    surface obliquely or curving away from the rays: at ``tau`` (``trunc_m``, where a voxel
+    starts to count as free) it is trusted not at all, at ``tau_b`` (every frame saw the
+    voxel beyond the truncation) fully::
 
         t = clip((tsdf - tau) / (tau_b - tau), 0, 1)
         target = h/2 + t (tsdf - h/2),  at least h/2
@@ -113,8 +114,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     ``passes`` times (``free = 0``: no constraint); an anchored voxel whose mean is still
     below 0 (the data pull harder than its anchor) has its target raised by what it lacks of
     half a voxel (an augmented-Lagrangian step), so the inequality holds where it matters: no
-    surface in free space. The anchors are taken out of ``system``
-    again at the end: they enforce an inequality on the mean and are no measurement, so the
+    surface in free space. The anchors are taken out of ``system`` again at the end: they
+    enforce an inequality on the mean and are no measurement, so the
     variance (step 6) is that of the data and the prior (kept in, they made the sigma of the
     vertices beside anchored voxels far smaller than their errors: docs/measurements.md,
     ``prior.carve``). With ``prior`` (the
