@@ -180,10 +180,14 @@ def add_curvature_prior(S, nbr, *, lam2: float, weights=None) -> tuple:
 def _curvature_weights(mean: ti.types.ndarray(dtype=ti.f32, ndim=1),
                        nbr: ti.types.ndarray(dtype=ti.i32, ndim=2),
                        W_old: ti.types.ndarray(dtype=ti.f32, ndim=2),
-                       dW: ti.types.ndarray(dtype=ti.f32, ndim=2), inv_c2: ti.f64):
-    """The robust weight ``w = 1 / (1 + d^2 / c^2)`` of each second difference ``d`` of
-    ``mean`` (centred at voxel i, along each axis; 0 where it does not exist), written to W_old,
-    and its change ``w - w_old`` to dW. One thread per voxel (gather)."""
+                       W_new: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                       dW: ti.types.ndarray(dtype=ti.f32, ndim=2), inv_c2: ti.f64,
+                       laplace: ti.i32):
+    """The weight of each second difference ``d`` of ``mean`` (centred at voxel i, along each
+    axis; 0 where it does not exist), ``u = d^2 / c^2``: the robust weight ``w = 1 / (1 + u)``
+    (``laplace`` = 0) or the penalty's curvature ``max(1 - u, 0) / (1 + u)^2`` (``laplace`` =
+    1), written to W_new, and its change from W_old to dW. One thread per voxel (gather);
+    W_new may be W_old."""
     for i in range(nbr.shape[0]):
         for ax in ti.static(range(3)):
             m = nbr[i, ti.static(CENTRE - _AXIS_STRIDE[ax])]
@@ -192,9 +196,12 @@ def _curvature_weights(mean: ti.types.ndarray(dtype=ti.f32, ndim=1),
             if m >= 0 and p >= 0:
                 d = ti.cast(mean[m], ti.f64) - 2.0 * ti.cast(mean[i], ti.f64) + ti.cast(
                     mean[p], ti.f64)
-                w = 1.0 / (1.0 + d * d * inv_c2)
+                u = d * d * inv_c2
+                w = 1.0 / (1.0 + u)
+                if laplace:
+                    w = ti.max(1.0 - u, 0.0) * w * w
             dW[i, ax] = ti.cast(w - ti.cast(W_old[i, ax], ti.f64), ti.f32)
-            W_old[i, ax] = ti.cast(w, ti.f32)
+            W_new[i, ax] = ti.cast(w, ti.f32)
 
 
 def reweight_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float) -> None:
@@ -207,9 +214,30 @@ def reweight_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: floa
     go; where it is smooth it keeps the full strength ``lam2``."""
     S2, nbr2 = far
     dW = np.empty_like(W)
-    _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W, dW,
-                       1.0 / float(scale_m) ** 2)
+    _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W, W, dW,
+                       1.0 / float(scale_m) ** 2, 0)
     _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
+
+
+def laplace_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float) -> np.ndarray:
+    """The robust curvature prior's Laplace approximation at ``mean`` (its MAP): the stencil
+    ``S`` and far part ``far``, which hold ``lam2 D^T diag(W) D`` (``W``: the reweighting's
+    weights, left unchanged), get the penalty's own curvature instead, in place::
+
+        d^2/dd^2 [c^2 log(1 + d^2 / c^2)] / 2 = (1 - u) / (1 + u)^2,   u = d^2 / c^2,
+
+    taken as 0 where it is negative (``|d| > c``: the penalty is concave there and adds no
+    precision). The reweighting's ``1 / (1 + u)`` is the slope's ratio ``rho'(d) / 2 d``, which
+    gives the MAP, not the posterior's spread around it: at a crease or a thin part it keeps
+    charging a bend the prior no longer resists, and the variance came out too small there
+    (docs/measurements.md, "The robust prior's variance from its Hessian"). Returns the (N, 3)
+    float32 weights now in ``S``."""
+    S2, nbr2 = far
+    W_h, dW = np.empty_like(W), np.empty_like(W)
+    _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W, W_h, dW,
+                       1.0 / float(scale_m) ** 2, 1)
+    _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
+    return W_h
 
 
 def _shape_of(arr, name: str) -> tuple:

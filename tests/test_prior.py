@@ -20,7 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from kernels.band import build_band
 from kernels.stencil import apply_Q, check_far, check_stencil
 from kernels.prior import (ANCHOR_MODES, add_curvature_prior, add_prior,
-                           reweight_curvature_prior)
+                           laplace_curvature_prior, reweight_curvature_prior)
 
 VOXEL = 0.01
 TAU_B = 0.02
@@ -186,11 +186,12 @@ def test_bad_arguments_are_rejected(band, bad):
         add_prior(**args, **kw)
 
 
-def reference_curvature(ijk, lam2, x=None, c=None):
+def reference_curvature(ijk, lam2, x=None, c=None, laplace=False):
     """lam2 D^T D (CSR float64): one row of D per voxel j and axis e with j - e and j + e in
     the band (found by coordinates), the second difference x_{j-e} - 2 x_j + x_{j+e}. With a
     field ``x`` and a scale ``c``: the robust prior's lam2 D^T diag(w) D at x,
-    ``w = 1 / (1 + (D x)^2 / c^2)``."""
+    ``w = 1 / (1 + (D x)^2 / c^2)``; with ``laplace``, ``w`` is the penalty's second derivative
+    ``d^2/dd^2 [c^2 log(1 + d^2 / c^2)] / 2``, by central differences, clipped at 0."""
     index = {tuple(v): k for k, v in enumerate(ijk.tolist())}
     rows, cols, vals = [], [], []
     r = 0
@@ -205,6 +206,13 @@ def reference_curvature(ijk, lam2, x=None, c=None):
                 r += 1
     D = sp.csr_matrix((vals, (rows, cols)), shape=(r, len(ijk)))
     w = np.ones(r) if x is None else 1.0 / (1.0 + (D @ x) ** 2 / c ** 2)
+    if laplace:
+        d, step = D @ x, 1e-4 * c
+
+        def penalty(t):
+            return c ** 2 * np.log1p(t ** 2 / c ** 2)
+        w = np.maximum((penalty(d + step) - 2 * penalty(d) + penalty(d - step)) / step ** 2 / 2,
+                       0.0)
     return (lam2 * (D.T @ sp.diags(w) @ D)).tocsr()
 
 
@@ -280,6 +288,32 @@ def test_robust_curvature_prior_reweights_to_the_reference_at_the_last_field(ban
     check_far(far, S + np.eye(1, 27, 13, dtype=np.float32), rtol=0)
     at_crease = np.abs(ijk[:, 0] + 0.5) < 1
     assert W[at_crease, 0].max() < 0.1 and W[~at_crease].max() > 0.99
+
+
+def test_laplace_curvature_prior_is_the_penalty_s_curvature_at_the_field(band):
+    """After the reweighting, the variance's system holds the robust penalty's second
+    derivative at the field (finite differences of ``c^2 log(1 + d^2 / c^2)``, 0 where it is
+    concave), not the reweighting's ``1 / (1 + u)``; the weights the reweighting left are
+    kept (they give the prior's slope). At a crease (``|d| >> c``) the prior adds nothing."""
+    nbr, ijk, c = band["nbr"], band["ijk"], 0.3 * VOXEL
+    n = len(ijk)
+    crease = (np.abs((ijk[:, 0] + 0.5) * VOXEL) + 0.5 * (ijk[:, 2] + 0.5) * VOXEL
+              + 0.002 * np.sin(ijk[:, 1])).astype(np.float32)  # bends of 0 .. ~2 c besides
+    S = np.zeros((n, 27), np.float32)
+    far = add_curvature_prior(S, nbr, lam2=LAM)
+    W = np.ones((n, 3), np.float32)
+    reweight_curvature_prior(S, far, nbr, crease, W, lam2=LAM, scale_m=c)
+    W_slope = W.copy()
+    W_h = laplace_curvature_prior(S, far, nbr, crease, W, lam2=LAM, scale_m=c)
+    Q = curvature_csr(S, nbr, *far)
+    x = crease.astype(np.float64)
+    Q_ref = reference_curvature(ijk, LAM, x, c, laplace=True)
+    assert abs(Q - Q_ref).max() <= 1e-4 * LAM
+    assert abs(Q - reference_curvature(ijk, LAM, x, c)).max() > 0.1 * LAM  # not the slope's
+    assert np.array_equal(W, W_slope)
+    at_crease = np.abs(ijk[:, 0] + 0.5) < 1
+    assert W_h[at_crease, 0].max() == 0 and W_h.min() >= 0
+    assert np.all(W_h <= W + 1e-7)  # never stiffer than the reweighting
 
 
 def test_weighted_curvature_prior_is_the_one_the_reweighting_left(band):

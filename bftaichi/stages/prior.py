@@ -58,7 +58,10 @@ class PriorConfig:
     """Scale ``c`` of the robust curvature prior, in voxels (0 = the Gaussian prior). With
     ``c > 0`` each second difference ``d`` costs ``lam2 c^2 log(1 + d^2 / c^2)`` instead of
     ``lam2 d^2``: full strength where the field is smooth (``|d| << c``), letting go at creases
-    and thin parts (``|d| >> c``). Solved by reweighting (:data:`ROBUST_PASSES` MAP solves)."""
+    and thin parts (``|d| >> c``). Solved by reweighting (:data:`ROBUST_PASSES` MAP solves);
+    the variance is the Laplace approximation at the MAP, the penalty's own curvature ``(1 -
+    u) / (1 + u)^2`` (``u = d^2 / c^2``, 0 where negative), not the reweighting's weights
+    (:func:`kernels.prior.laplace_curvature_prior`)."""
 
     eps: float = 1e-4
     """``eps * I``, per voxel^2: keeps Q positive definite where nothing else does."""
@@ -95,9 +98,11 @@ class System:
     h: np.ndarray
     far: tuple | None = None
     curvature_weights: np.ndarray | None = None
-    """(N, 3) float32 weights of the robust curvature prior's second differences that ``S`` and
-    ``far`` hold (``prior.curvature_scale > 0``; set by :func:`~.solve.solve_map`), None: all
-    one."""
+    """(N, 3) float32 weights of the robust curvature prior's second differences at the MAP,
+    ``1 / (1 + d^2 / c^2)`` (``prior.curvature_scale > 0``; set by :func:`~.solve.solve_map`),
+    None: all one. They give the prior's slope (its force, :func:`~.solve.prior_bias`); ``S``
+    and ``far`` hold its curvature there instead (the Laplace approximation,
+    :func:`kernels.prior.laplace_curvature_prior`)."""
     compact: object | None = None
     """The :class:`kernels.compact.CompactStencil` of ``(S, nbr, far)`` as
     :func:`~.solve.solve_map` left them (its free-space anchors taken out again), which

@@ -61,7 +61,8 @@ class SolverConfig:
     (:func:`~.variance.estimate_variance`), fully correlated between neighbours as a
     deterministic offset: creases, thin parts and the prior's extrapolation get the larger
     sigma their errors have. With the robust curvature prior (``prior.curvature_scale > 0``)
-    the estimate uses the prior at its last weights."""
+    the force is the prior's slope at the mean (its reweighted weights) and the solve uses its
+    Hessian there (the Laplace approximation the variance uses)."""
 
     def check(self) -> None:
         check_range("solver.tol", self.tol, 0.0, 1.0, lo_open=True)
@@ -121,7 +122,9 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     ``prior.carve``). With ``prior`` (the
     :class:`~.prior.PriorConfig` of ``system``) and ``prior.curvature_scale > 0``, the robust
     curvature prior is reweighted at the mean and the MAP solved again, :data:`ROBUST_PASSES`
-    times, each followed by the free-space passes. Returns ``(mean, stats)``: ``converged``,
+    times, each followed by the free-space passes, and ``system`` is left with the prior's
+    Laplace approximation at the mean (:func:`kernels.prior.laplace_curvature_prior`; the
+    reweighted weights in ``system.curvature_weights``) for the variance. Returns ``(mean, stats)``: ``converged``,
     ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
     ``free_space`` (``passes, anchored``, ``lifted``: target raises summed over the passes,
     ``free_voxels``, ``carved_voxels``: those of ``carved``,
@@ -186,10 +189,18 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     # variance (step 6, on the same system) is that of the data and the prior without them
     S[active, CENTRE] -= k
     h[active] -= k * target[active]
-    compact.set_diagonal(S[:, CENTRE])  # the layout of the system as left: prior_bias's
-    system.compact = compact
-    if reweight:  # the prior the variance and the bias estimate see
+    if reweight:  # the variance and the bias's solve see the robust prior's Hessian at the
+        # mean; the bias's force, the prior's slope there, its reweighted weights
+        from kernels.prior import laplace_curvature_prior
+
+        laplace_curvature_prior(S, system.far, system.nbr, mean, W,
+                                lam2=prior.curvature / voxel_size_m ** 2,
+                                scale_m=prior.curvature_scale * voxel_size_m)
         system.curvature_weights = W
+        compact = CompactStencil(S, system.nbr, system.far, check=False)
+    else:
+        compact.set_diagonal(S[:, CENTRE])
+    system.compact = compact  # the layout of the system as left: prior_bias's
     stats = {"converged": info["converged"], "iterations": iterations,
              "relative_residual": info["relative_residual"]}
     stats["free_space"] = {"passes": n_pass, "anchored": n_anchored, "lifted": n_lifted,
@@ -213,8 +224,9 @@ def prior_bias(system, band, prior, stencil: int, voxel_size_m: float, mean: np.
     ``A^T W (y - A mu)``. ``P mu - b0`` is computed from the prior alone
     (:func:`~.prior.prior_terms` on an empty stencil), so the data term need not be kept;
     ``system`` is the posterior's (without the free-space anchors, which enforce an
-    inequality and are no prior; with the robust curvature prior, at the weights its last
-    reweighting left, :attr:`~.prior.System.curvature_weights`). The solve stops at
+    inequality and are no prior; with the robust curvature prior, its Hessian at the mean,
+    while the force is built at the weights its last reweighting left,
+    :attr:`~.prior.System.curvature_weights`: the prior's slope). The solve stops at
     ``solver.probe_tol``: the bias enters a variance, like the probes."""
     from kernels.compact import CompactStencil
     from kernels.pcg import pcg
