@@ -54,19 +54,21 @@ class PriorConfig:
     near each pixel's surface, then bent the posterior through zero there (surfaces bridged
     across gaps, thin parts fattened). Measured in docs/measurements.md."""
 
-    curvature_scale: float = 0.0
+    curvature_scale: float = 0.25
     """Scale ``c`` of the robust curvature prior, in voxels (0 = the Gaussian prior). With
     ``c > 0`` each second difference ``d`` costs ``lam2 c^2 log(1 + d^2 / c^2)`` instead of
     ``lam2 d^2``: full strength where the field is smooth (``|d| << c``), letting go at creases
     and thin parts (``|d| >> c``). Solved by reweighting (:data:`ROBUST_PASSES` MAP solves);
     the variance is the Laplace approximation at the MAP, the penalty's own curvature ``(1 -
     u) / (1 + u)^2`` (``u = d^2 / c^2``, 0 where negative), not the reweighting's weights
-    (:func:`kernels.prior.laplace_curvature_prior`)."""
+    (:func:`kernels.prior.laplace_curvature_prior`). The default since issue 15's measurement
+    of both suites with that variance (docs/measurements.md, "The robust prior's variance from
+    its Hessian"): a lower CD and a more informative sigma than the Gaussian prior of 0.1."""
 
     eps: float = 1e-4
     """``eps * I``, per voxel^2: keeps Q positive definite where nothing else does."""
 
-    curvature: float = 0.1
+    curvature: float = 0.5
     """Second-order (curvature) prior strength ``lam2``, per voxel^2: ``lam2 sum (x_{j-e} - 2
     x_j + x_{j+e})^2`` over the band's second differences along each axis (0 = off, the paper's
     model). It leaves a field of unit slope alone (only bending costs), so unlike the membrane
