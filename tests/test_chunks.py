@@ -89,8 +89,10 @@ def test_chunked_solve_equals_the_monolithic_one(mono):
 
 def test_chunked_linear_part_equals_the_monolithic_one_to_half_the_bound():
     """Without the carved voxels the free-space inequality holds only where the averaged TSDF
-    exceeds tau, far from the surface, and the chunks meet half the issue's bound."""
-    extra = ["prior.carve=0"]
+    exceeds tau, far from the surface, and the chunks meet half the issue's bound. With the
+    linear (Gaussian) curvature prior: the robust one, the default, reweights each chunk at its
+    own mean."""
+    extra = ["prior.carve=0", "prior.curvature=0.1", "prior.curvature_scale=0"]
     dm, _ = _differences(_solve(["run.chunk_m=0.32", *extra], variance=False),
                          _solve(extra, variance=False))
     assert dm < 0.05

@@ -33,6 +33,9 @@ SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 3 ring views on one side,
     # local update ranks the candidates worse against the exact reduction (Spearman 0.81,
     # 0.95 without super-pixels); measured in issue 16, for the planner issue to take up
     "observation.aggregate=0",
+    # the linear (Gaussian) curvature prior: conftest.posterior_system rebuilds Q with it; the
+    # robust prior, the default, reweights Q at the mean and takes its Hessian for the variance
+    "prior.curvature=0.1", "prior.curvature_scale=0",
 )
 
 

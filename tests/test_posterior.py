@@ -173,8 +173,10 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     # out at the band's edge and seen by one frame, end below half a voxel without the
     # constraint (the constraint anchors them too, so the comparison far from the bent
     # voxels leaves them out)
+    # the linear (Gaussian) curvature prior, which conftest.posterior_system rebuilds
     cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false",
-                             "observation.aggregate=0"])
+                             "observation.aggregate=0", "prior.curvature=0.1",
+                             "prior.curvature_scale=0"])
     recon, post = solved(cfg, open_frames(cfg), variance=False)
     band, system = posterior_system(recon)
     S, nbr, far = system.S.copy(), system.nbr, system.far

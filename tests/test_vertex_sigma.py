@@ -24,6 +24,9 @@ SPHERE_SETS = (  # a sphere of radius 0.15 m seen from 8 views all around, 3 cm 
     # the probe estimate of Q^-1 alone: local noise adds a b^2 that is fully correlated between
     # neighbours by construction (tests/test_local_noise.py), which would hide the covariances
     "observation.local_noise=false",
+    # the linear (Gaussian) curvature prior: conftest.posterior_system rebuilds Q with it; the
+    # robust prior, the default, reweights Q at the mean and takes its Hessian for the variance
+    "prior.curvature=0.1", "prior.curvature_scale=0",
 )
 
 

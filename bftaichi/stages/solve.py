@@ -77,12 +77,6 @@ class SolverConfig:
 ROBUST_PASSES = 2
 """Reweighting steps of the robust curvature prior (``prior.curvature_scale > 0``)."""
 
-ACTIVE_SET_TOL = 1e-4
-"""Relative residual of the MAP solves whose mean only chooses the next free-space anchors or
-robust weights: every solve but the last stops here, the last at ``solver.tol``
-(docs/measurements.md, "The robust prior's variance from its Hessian": the suite's figures
-unchanged, the MAP's PCG iterations roughly halved)."""
-
 
 def anchor_target(tsdf: np.ndarray, trunc_m: float, bootstrap_trunc_m: float,
                   voxel_size_m: float) -> np.ndarray:
@@ -118,8 +112,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     fell below half a voxel is anchored (:func:`anchor_target`: at least half a voxel, more
     the farther beyond ``trunc_m`` its TSDF puts it), with strength ``free`` per voxel^2 (in
     ``system.S`` and ``system.h``, in place) and the MAP is solved again, warm-started, up to
-    ``passes`` times (``free = 0``: no constraint; every solve but the last to
-    :data:`ACTIVE_SET_TOL`, the last to ``solver.tol``); an anchored voxel whose mean is still
+    ``passes`` times (``free = 0``: no constraint); an anchored voxel whose mean is still
     below 0 (the data pull harder than its anchor) has its target raised by what it lacks of
     half a voxel (an augmented-Lagrangian step), so the inequality holds where it matters: no
     surface in free space. The anchors are taken out of ``system`` again at the end: they
@@ -149,10 +142,9 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     compact = CompactStencil(S, system.nbr, system.far, check=False)
 
     reweight = prior is not None and prior.curvature > 0 and prior.curvature_scale > 0
-    loose = max(solver.tol, ACTIVE_SET_TOL) if free > 0 or reweight else solver.tol
 
-    def solve(start, tol=loose):
-        return pcg(S, system.nbr, h, start, tol=tol, maxiter=solver.maxiter,
+    def solve(start):
+        return pcg(S, system.nbr, h, start, tol=solver.tol, maxiter=solver.maxiter,
                    far=system.far, compact=compact)
 
     mean, info = solve(x0)
@@ -192,9 +184,6 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
             compact.set_diagonal(S[:, CENTRE])
             mean, info = solve(mean)
             iterations += info["iterations"]
-    if loose != solver.tol:  # the mean returned is solved to solver.tol
-        mean, info = solve(mean, solver.tol)
-        iterations += info["iterations"]
     if free > 0:
         n_free, n_anchored = int(free_mask.sum()), int(active.sum())
     # the anchors enforce an inequality on the mean; they are not measurements, so the
