@@ -152,7 +152,7 @@ def test_free_space_anchors_do_not_push_a_perfectly_seen_surface():
     constraint must hold the surface where the data put it. The SDF of the voxels within a
     voxel of the true surface is nearly as close to the exact signed distance as without the
     constraint: anchors at the TSDF's projective value made it 1.43x worse; today's anchors
-    give 1.03x with the Gaussian curvature prior and 1.12x with the robust one (the default),
+    give 1.03x with the Gaussian curvature prior and 1.10x with the robust one (the default),
     which resists the kinks the anchors leave less."""
     import bftaichi as bf
     from bftaichi.running.pipeline import open_frames
