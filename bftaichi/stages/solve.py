@@ -124,8 +124,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     curvature prior is reweighted at the mean and the MAP solved again, :data:`ROBUST_PASSES`
     times, each followed by the free-space passes, and ``system`` is left with the prior's
     Laplace approximation at the mean (:func:`kernels.prior.laplace_curvature_prior`; the
-    reweighted weights in ``system.curvature_weights``) for the variance. Returns ``(mean, stats)``: ``converged``,
-    ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
+    reweighted weights in ``system.curvature_weights``) for the variance. Returns ``(mean,
+    stats)``: ``converged``, ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
     ``free_space`` (``passes, anchored``, ``lifted``: target raises summed over the passes,
     ``free_voxels``, ``carved_voxels``: those of ``carved``,
     which the averaged TSDF does not call free), ``residual_history`` (the last solve's)
