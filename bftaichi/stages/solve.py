@@ -125,8 +125,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     times, each followed by the free-space passes, and ``system`` is left with the prior's
     Laplace approximation at the mean (:func:`kernels.prior.laplace_curvature_prior`; the
     reweighted weights in ``system.curvature_weights``) for the variance. Returns ``(mean,
-    stats)``: ``converged``, ``iterations`` (summed over the solves), ``relative_residual`` (the last solve's),
-    ``free_space`` (``passes, anchored``, ``lifted``: target raises summed over the passes,
+    stats)``: ``converged``, ``iterations`` (summed over the solves), ``relative_residual``
+    (the last solve's), ``free_space`` (``passes, anchored``, ``lifted``: target raises summed over the passes,
     ``free_voxels``, ``carved_voxels``: those of ``carved``,
     which the averaged TSDF does not call free), ``residual_history`` (the last solve's)
     and ``reason`` when PCG stopped early. ``system.compact`` is set to the solves' compact
