@@ -126,9 +126,9 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     Laplace approximation at the mean (:func:`kernels.prior.laplace_curvature_prior`; the
     reweighted weights in ``system.curvature_weights``) for the variance. Returns ``(mean,
     stats)``: ``converged``, ``iterations`` (summed over the solves), ``relative_residual``
-    (the last solve's), ``free_space`` (``passes, anchored``, ``lifted``: target raises summed over the passes,
-    ``free_voxels``, ``carved_voxels``: those of ``carved``,
-    which the averaged TSDF does not call free), ``residual_history`` (the last solve's)
+    (the last solve's), ``free_space`` (``passes, anchored``, ``lifted``: target raises
+    summed over the passes, ``free_voxels``, ``carved_voxels``: those of ``carved``, which
+    the averaged TSDF does not call free), ``residual_history`` (the last solve's)
     and ``reason`` when PCG stopped early. ``system.compact`` is set to the solves' compact
     layout of the system as returned (for :func:`prior_bias`)."""
     from kernels.compact import CompactStencil
