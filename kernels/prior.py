@@ -212,11 +212,7 @@ def reweight_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: floa
     (all ones after :func:`add_curvature_prior`), in ``S`` and the far part ``far = (S2, nbr2)``,
     in place. Where the field bends by much more than ``c`` (creases, thin parts) the prior lets
     go; where it is smooth it keeps the full strength ``lam2``."""
-    S2, nbr2 = far
-    dW = np.empty_like(W)
-    _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W, W, dW,
-                       1.0 / float(scale_m) ** 2, 0)
-    _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
+    _replace_curvature_weights(S, far, nbr, mean, W, W, lam2, scale_m, laplace=0)
 
 
 def laplace_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float) -> np.ndarray:
@@ -232,12 +228,20 @@ def laplace_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float
     charging a bend the prior no longer resists, and the variance came out too small there
     (docs/measurements.md, "The robust prior's variance from its Hessian"). Returns the (N, 3)
     float32 weights now in ``S``."""
-    S2, nbr2 = far
-    W_h, dW = np.empty_like(W), np.empty_like(W)
-    _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W, W_h, dW,
-                       1.0 / float(scale_m) ** 2, 1)
-    _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
+    W_h = np.empty_like(W)
+    _replace_curvature_weights(S, far, nbr, mean, W, W_h, lam2, scale_m, laplace=1)
     return W_h
+
+
+def _replace_curvature_weights(S, far, nbr, mean, W_old, W_new, lam2, scale_m, *, laplace):
+    """``S`` and ``far`` (holding ``lam2 D^T diag(W_old) D``) get the weights of
+    :func:`_curvature_weights` at ``mean`` instead (written to ``W_new``, which may be
+    ``W_old``): one pass for the weights, one adding ``lam2 D^T diag(W_new - W_old) D``."""
+    S2, nbr2 = far
+    dW = np.empty_like(W_old)
+    _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W_old, W_new, dW,
+                       1.0 / float(scale_m) ** 2, laplace)
+    _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
 
 
 def _shape_of(arr, name: str) -> tuple:

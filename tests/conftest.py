@@ -39,7 +39,11 @@ def solved(cfg, frames, *, variance=True):
 
 def posterior_system(recon):
     """Steps 2-4 of ``recon``'s last solve again, by the stage functions: the band and the
-    posterior's linear system (:class:`bftaichi.stages.prior.System`), for tests that need Q."""
+    posterior's linear system (:class:`bftaichi.stages.prior.System`), for tests that need Q.
+    It is the posterior's Q with the Gaussian curvature prior (``prior.curvature_scale = 0``);
+    with the robust one, the default, it holds that prior at unit weights, not the weights nor
+    the Hessian :func:`bftaichi.stages.solve.solve_map` leaves, so tests comparing against
+    ``Q^-1`` pin the Gaussian prior."""
     from bftaichi.stages.band import build_band
     from bftaichi.stages.observe import make_observer, observe
     from bftaichi.stages.prior import add_prior
