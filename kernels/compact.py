@@ -416,6 +416,7 @@ class CompactStencil:
         self.far = far is not None
         self._S, self._nbr, self._far_arrays = S, nbr, far  # the exact path (non-finite x)
         self._stride = layout["stride"]
+        self._slots = layout["mbase"] // layout["stride"]
         self._D = layout["D"]
         self._args = (layout["mbase"], layout["rbase"], layout["n_sub"], layout["n_simd"],
                       layout["stride"])
@@ -437,6 +438,25 @@ class CompactStencil:
         self._D[1:self.n + 1] = diag  # slot 0 of U, voxel i at position i + 1
         if not np.shares_memory(self._S, diag):
             self._S[:, CENTRE] = diag  # the exact path's copy
+
+    def refill(self, S, far=None) -> None:
+        """Take every coefficient from ``(S, far)``: a stencil with the neighbour tables the
+        layout was built on and new values (e.g. the robust prior's reweighting,
+        :func:`kernels.prior.reweight_curvature_prior`), without recomputing the runs. The
+        layout then equals a fresh build's on ``(S, nbr, far)``, slot for slot."""
+        S, _ = stencil_arrays(S, self._nbr)
+        if S.shape[0] != self.n:
+            raise ValueError(f"S must have shape ({self.n}, {STENCIL}), got {S.shape}")
+        far = far_arrays(far, self.n)
+        if (far is None) != (not self.far):
+            raise ValueError("far must be given exactly when the layout was built with it")
+        self._S = S  # the exact path (non-finite x)
+        if far is not None:
+            self._far_arrays = (far[0], self._far_arrays[1])
+        S2, nbr2 = self._far_arrays if far is not None else (
+            np.zeros((1, FAR), np.float32), np.full((1, FAR), -1, np.int32))
+        _fill_slots(S, self._nbr, S2, nbr2, int(far is not None),
+                    self._D[:self._args[0]].reshape(self._slots, self._stride))
 
     def apply_dot(self, P: np.ndarray, AP: np.ndarray) -> float:
         """AP = Q P for padded (N+1,) float32/float64 vectors (P[0] = 0, written AP[0] = 0);

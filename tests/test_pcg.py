@@ -219,6 +219,31 @@ def test_compact_diagonal_update_equals_a_rebuild(small):
         op.set_diagonal(-S[:, 13])
 
 
+def test_compact_refill_equals_a_rebuild(large):
+    """The robust prior's reweighting changes the stencil's values, near and far, not its
+    neighbours; the MAP refills one layout (refill): products bitwise those of a fresh
+    build, and the exact path (non-finite x) sees the new values too."""
+    from kernels.prior import add_curvature_prior
+    rng = np.random.default_rng(12)
+    S, nbr = large["S"].copy(), large["nbr"]
+    S2, nbr2 = add_curvature_prior(S, nbr, lam2=0.5)
+    op = CompactStencil(S, nbr, (S2, nbr2))
+    S_new, S2_new = S * np.float32(0.7), S2 * np.float32(0.4)  # still symmetric
+    S_new[:, 13] += 1.0
+    op.refill(S_new, (S2_new, nbr2))
+    fresh = CompactStencil(S_new, nbr, (S2_new, nbr2))
+    x = rng.standard_normal(len(S))
+    assert np.array_equal(op.apply(x), fresh.apply(x))
+    assert not np.array_equal(op.apply(x), CompactStencil(S, nbr, (S2, nbr2)).apply(x))
+    x[7] = np.inf
+    np.testing.assert_array_equal(np.isfinite(op.apply(x)),
+                                  np.isfinite(apply_Q(S_new, nbr, x, far=(S2_new, nbr2))))
+    with pytest.raises(ValueError, match="far"):
+        op.refill(S_new)
+    with pytest.raises(ValueError, match="shape"):
+        op.refill(S_new[:-1], (S2_new, nbr2))
+
+
 def test_bad_stencils_are_rejected(small):
     S, nbr = small["S"], small["nbr"]
     check_stencil(S, nbr)  # the valid one passes

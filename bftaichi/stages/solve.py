@@ -163,7 +163,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
             reweight_curvature_prior(S, system.far, system.nbr, mean, W,
                                      lam2=prior.curvature / voxel_size_m ** 2,
                                      scale_m=prior.curvature_scale * voxel_size_m)
-            compact = CompactStencil(S, system.nbr, system.far, check=False)
+            compact.refill(S, system.far)  # new values, the same neighbours
             mean, info = solve(mean)
             iterations += info["iterations"]
         for n_pass in range(1, passes + 1) if free > 0 else ():
@@ -198,7 +198,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
                                 lam2=prior.curvature / voxel_size_m ** 2,
                                 scale_m=prior.curvature_scale * voxel_size_m)
         system.curvature_weights = W
-        compact = CompactStencil(S, system.nbr, system.far, check=False)
+        compact.refill(S, system.far)
     else:
         compact.set_diagonal(S[:, CENTRE])
     system.compact = compact  # the layout of the system as left: prior_bias's
