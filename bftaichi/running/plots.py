@@ -214,10 +214,10 @@ def _plot_calibration(error, sigma, report: dict, path: Path) -> Path:
 def _plot_pcg_residual(solver: dict, report: dict, path: Path) -> Path:
     history = np.asarray(solver["residual_history"], np.float64)
     fig, ax = _figure()
-    passes = (solver.get("free_space") or {}).get("passes", 1)
+    solves = solver.get("solves", 1 + (solver.get("free_space") or {}).get("passes", 0))
     label = f"converged={solver['converged']} after {solver['iterations']} iterations"
-    if passes > 1:  # the history is the last solve's (bftaichi.stages.solve.solve_map)
-        label += f"\nin {passes} free-space passes; the last pass shown"
+    if solves > 1:  # the history is the last solve's (bftaichi.stages.solve.solve_map)
+        label += f"\nin {solves} solves (reweighting, free-space passes); the last shown"
     ax.semilogy(np.arange(len(history)), history, color="C0", lw=1.2, label=label)
     tol = report["config"]["solver"]["tol"]
     ax.axhline(tol, color="C3", lw=0.8, ls="--", label=f"solver.tol = {tol:g}")

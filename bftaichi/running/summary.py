@@ -51,6 +51,11 @@ def print_summary(out: Path, report: dict, verbose: bool = False) -> None:
         if not m["converged"]:
             click.echo("warning: the MAP solve did not converge; mesh.ply is written but flagged "
                        "in report.json (raise solver.maxiter or check the scene)", err=True)
+        fs = m.get("free_space") or {}
+        if fs.get("settled") is False:
+            click.echo(f"warning: the free-space constraint still found free voxels below half a "
+                       f"voxel after {fs['passes']} passes; some may be left inside the surface "
+                       "(report.json: solver.map.free_space)", err=True)
     if c["empty_frames"]:
         click.echo(f"warning: {c['empty_frames']} of {c['frames']} frames observed no voxel; if that "
                    "is unexpected, check that poses are T_W_C (camera-to-world), not T_C_W, and the "
