@@ -205,6 +205,45 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     np.testing.assert_allclose(fixed[away], post.mean[away], atol=0.05 * vs)
 
 
+def test_free_space_passes_solved_locally_settle_where_whole_solves_settle(monkeypatch):
+    """solve_map's passes after the robust prior's reweighting solve only around their new
+    anchors (LOCAL_RINGS rings), then the settled mean is solved whole and checked again:
+    the same anchors and, to the solver's tolerance, the same mean as passes that each solve
+    the whole band (LOCAL_SHARE = 0), with part of the work on small regions."""
+    import bftaichi.stages.solve as solve_mod
+    from bftaichi.running.pipeline import open_frames
+    from bftaichi.stages.prior import System
+    from conftest import posterior_system, pulled_inside, solved
+
+    cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false",
+                             "observation.aggregate=0", "prior.curvature=0.1",
+                             "prior.curvature_scale=0"])
+    recon, post = solved(cfg, open_frames(cfg), variance=False)
+    band, system = posterior_system(recon)
+    vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
+    S0 = system.S.copy()
+    free = np.flatnonzero(band.observed & (band.tsdf > tau))
+    hit = free[:: len(free) // 12][:12]
+    h0, bent = pulled_inside(S0, system.nbr, system.far, post.mean, hit, tau, vs)
+    cfg.solver.tol = 1e-8
+
+    def run(share):
+        monkeypatch.setattr(solve_mod, "LOCAL_SHARE", share)
+        return solve_mod.solve_map(System(S=S0.copy(), nbr=system.nbr, h=h0.copy(),
+                                          far=system.far), bent, cfg.solver, band,
+                                   trunc_m=tau, voxel_size_m=vs, free=1000.0,
+                                   bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m)
+
+    local, info_l = run(solve_mod.LOCAL_SHARE)
+    whole, info_w = run(0.0)
+    assert info_l["local_solves"] > 0 and info_w["local_solves"] == 0
+    assert info_l["solves"] < info_w["solves"]
+    for info in (info_l, info_w):
+        assert info["converged"] and info["free_space"]["settled"]
+    assert info_l["free_space"]["anchored"] == info_w["free_space"]["anchored"]
+    assert np.abs(local - whole).max() < 1e-3 * vs
+
+
 def test_noise_fit_pairs_limited_to_nearly_the_same_point():
     """estimate_extra_noise(max_offset_px=...): only the pairs whose point projects within that
     many pixels of the paired pixel's centre count; a limit no offset reaches (half the cast

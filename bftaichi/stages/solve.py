@@ -80,8 +80,43 @@ ROBUST_PASSES = 2
 ACTIVE_SET_TOL = 1e-5
 """Relative residual of the MAP's solves that only lead to the next weights and anchors
 (:func:`solve_map`): the active set they settle on is that of solves to 1e-6 (1,673 anchored
-voxels against 1,672 on the built-in scene; 1e-4: 1,683), in 222 PCG iterations against 310."""
+voxels against 1,672 on the built-in scene; 1e-4: 1,683), in 222 PCG iterations against 310 (every pass solving the whole band)."""
 
+
+LOCAL_RINGS = 4
+"""Neighbour rings (26-neighbourhood) around a free-space pass's new anchors that its solve
+frees (:func:`solve_map`): an anchor moves the mean around it, and the loose passes only
+choose the next anchors; the settled mean is solved whole."""
+
+LOCAL_SHARE = 0.5
+"""A pass whose region exceeds this share of the band solves the whole band instead."""
+
+
+def _rings(nbr: np.ndarray, seeds: np.ndarray, rings: int) -> np.ndarray:
+    """Sorted band indices within ``rings`` 26-neighbour steps of ``seeds``."""
+    inside = np.zeros(len(nbr) + 1, bool)  # inside[-1]: the missing neighbour, ignored
+    inside[seeds] = True
+    front = np.asarray(seeds)
+    for _ in range(rings):
+        before = inside.copy()
+        inside[nbr[front].ravel()] = True
+        inside[-1] = False
+        front = np.flatnonzero(inside & ~before)
+    return np.flatnonzero(inside[:-1])
+
+
+def _sub_stencil(S, nbr, far, rows: np.ndarray) -> tuple:
+    """The stencil of Q's principal submatrix on the band voxels ``rows`` (sorted):
+    ``(S, nbr, far)`` with the rows' own numbering, links leaving ``rows`` cut."""
+    loc = np.full(len(S) + 1, -1, np.int32)  # loc[-1] (a missing neighbour) stays -1
+    loc[rows] = np.arange(len(rows), dtype=np.int32)
+    nbr_r = loc[nbr[rows]]
+    S_r = np.where(nbr_r >= 0, S[rows], np.float32(0)).astype(np.float32)
+    far_r = None
+    if far is not None:
+        nbr2_r = loc[far[1][rows]]
+        far_r = (np.where(nbr2_r >= 0, far[0][rows], np.float32(0)).astype(np.float32), nbr2_r)
+    return S_r, nbr_r, far_r
 
 
 def anchor_target(tsdf: np.ndarray, trunc_m: float, bootstrap_trunc_m: float,
@@ -133,15 +168,19 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     Laplace approximation at the mean (:func:`kernels.prior.laplace_curvature_prior`; the
     reweighted weights in ``system.curvature_weights``) for the variance.
 
-    The solves that only lead to the next weights and anchors stop at :data:`ACTIVE_SET_TOL`;
-    the mean they settle on is solved again to ``solver.tol`` and the active set settled on
-    it the same way, its solves to ``solver.tol``. Settling the active set makes the result independent of
+    The solves that only lead to the next weights and anchors stop at :data:`ACTIVE_SET_TOL`,
+    and a pass that follows only new anchors (not a reweighting) solves only within
+    :data:`LOCAL_RINGS` neighbour rings of them, the rest of the band held (the whole band when
+    that region is more than :data:`LOCAL_SHARE` of it); the mean they settle on is solved
+    again to ``solver.tol`` over the whole band and the active set settled on it the same
+    way, its solves whole and to ``solver.tol``. Settling the active set makes the result independent of
     the solves' path: a spatial chunk and the whole scene anchor the same voxels
     (tests/test_chunks.py), where a fixed number of passes left each with the voxels its
     path happened to cross.
 
-    Returns ``(mean, stats)``: ``converged``, ``iterations`` (summed over the solves),
-    ``solves``, ``relative_residual`` (the last solve's), ``free_space`` (``passes``: the
+    Returns ``(mean, stats)``: ``converged``, ``iterations`` (summed over the solves of the
+    whole band), ``solves`` (those), ``local_solves`` and ``local_iterations`` (the passes
+    solved on a region), ``relative_residual`` (the last solve's), ``free_space`` (``passes``: the
     solves that followed new anchors or target raises, ``settled``: the last mean needed no
     new anchor, ``anchored``, ``lifted``: target raises summed over the passes,
     ``free_voxels``, ``carved_voxels``: those of ``carved``, which the averaged TSDF does not
@@ -166,7 +205,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     target = anchor_target(band.tsdf, trunc_m, bootstrap_trunc_m, voxel_size_m)
     active = np.zeros(len(band), bool)
     k = np.float32(free / voxel_size_m ** 2)
-    count = dict(iterations=0, solves=0, passes=0, lifted=0)
+    count = dict(iterations=0, solves=0, passes=0, lifted=0, local_solves=0, local_iterations=0)
 
     def solved(start, tol):
         mean, info = pcg(S, system.nbr, h, start, tol=tol, maxiter=solver.maxiter,
@@ -175,17 +214,17 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         count["solves"] += 1
         return mean, info
 
-    def anchor(mean) -> bool:
+    def anchor(mean) -> np.ndarray:
         """Anchor the free voxels whose mean fell below half a voxel (and raise the targets
-        of anchored ones still below 0); False if there were none."""
+        of anchored ones still below 0); the indices of both (empty if there were none)."""
         if free <= 0:
-            return False
+            return np.zeros(0, np.int64)
         viol = free_mask & ~active & (mean < 0.5 * voxel_size_m)
         # an anchor is soft: where the data pull harder, its voxel may stay below 0, the
         # surface in free space; its target is raised by what it lacks of the bound
         lifted = active & (mean < 0)
         if not viol.any() and not lifted.any():
-            return False
+            return np.zeros(0, np.int64)
         active[viol] = True
         S[viol, CENTRE] += k
         h[viol] += k * target[viol]
@@ -195,7 +234,31 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         count["lifted"] += int(lifted.sum())
         count["passes"] += 1
         compact.set_diagonal(S[:, CENTRE])
-        return True
+        return np.flatnonzero(viol | lifted)
+
+    h_norm = float(np.linalg.norm(np.asarray(h, np.float64)))
+
+    def local(mean, seeds, tol):
+        """The MAP again after new anchors at ``seeds``, solved only within LOCAL_RINGS
+        neighbour rings of them (the rest held), to the residual a global solve to ``tol``
+        would stop at; a global solve when the region is more than LOCAL_SHARE of the band."""
+        region = _rings(system.nbr, seeds, LOCAL_RINGS)
+        if len(region) > LOCAL_SHARE * len(band):
+            return solved(mean, tol)
+        r = np.asarray(h, np.float64)[region] - compact.apply(mean)[region]
+        r_norm = float(np.linalg.norm(r))
+        count["local_solves"] += 1
+        if r_norm <= tol * h_norm:
+            return mean, None
+        S_r, nbr_r, far_r = _sub_stencil(S, system.nbr, system.far, region)
+        # a principal submatrix of the symmetric Q: symmetric by construction, not checked
+        d, info = pcg(S_r, nbr_r, r, None, tol=max(tol * h_norm / r_norm, 1e-8),
+                      maxiter=solver.maxiter, far=far_r,
+                      compact=CompactStencil(S_r, nbr_r, far_r, check=False))
+        count["local_iterations"] += info["iterations"]
+        mean = np.array(mean, np.float64)
+        mean[region] += d
+        return mean, None
 
     def settle(mean, info, tol, reweights):
         """The robust prior reweighted at the mean before each of the first ``reweights``
@@ -209,9 +272,13 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
                                          lam2=prior.curvature / voxel_size_m ** 2,
                                          scale_m=prior.curvature_scale * voxel_size_m)
                 compact.refill(S, system.far)  # new values, the same neighbours
-            if not anchor(mean) and step >= reweights:
+            seeds = anchor(mean)
+            if not len(seeds) and step >= reweights:
                 return mean, info, True
-            mean, info = solved(mean, tol)
+            if step >= reweights and tol > solver.tol:  # a global solve to solver.tol follows
+                mean, info = local(mean, seeds, tol)
+            else:
+                mean, info = solved(mean, tol)
         return mean, info, not (free > 0 and passes > 0)
 
     # the solves that only lead to the next weights and anchors stop at ACTIVE_SET_TOL; the
@@ -242,7 +309,9 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         compact.set_diagonal(S[:, CENTRE])
     system.compact = compact  # the layout of the system as left: prior_bias's
     stats = {"converged": info["converged"], "iterations": count["iterations"],
-             "solves": count["solves"], "relative_residual": info["relative_residual"]}
+             "solves": count["solves"], "local_solves": count["local_solves"],
+             "local_iterations": count["local_iterations"],
+             "relative_residual": info["relative_residual"]}
     stats["free_space"] = {"passes": count["passes"], "settled": settled,
                            "anchored": n_anchored,
                            "lifted": count["lifted"],
