@@ -80,7 +80,8 @@ ROBUST_PASSES = 2
 ACTIVE_SET_TOL = 1e-5
 """Relative residual of the MAP's solves that only lead to the next weights and anchors
 (:func:`solve_map`): the active set they settle on is that of solves to 1e-6 (1,673 anchored
-voxels against 1,672 on the built-in scene; 1e-4: 1,683), in 222 PCG iterations against 310 (every pass solving the whole band)."""
+voxels against 1,672 on the built-in scene; 1e-4: 1,683), in 222 PCG iterations against 310
+(every pass solving the whole band)."""
 
 
 LOCAL_RINGS = 4
@@ -173,10 +174,10 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     :data:`LOCAL_RINGS` neighbour rings of them, the rest of the band held (the whole band when
     that region is more than :data:`LOCAL_SHARE` of it); the mean they settle on is solved
     again to ``solver.tol`` over the whole band and the active set settled on it the same
-    way, its solves whole and to ``solver.tol``. Settling the active set makes the result independent of
-    the solves' path: a spatial chunk and the whole scene anchor the same voxels
-    (tests/test_chunks.py), where a fixed number of passes left each with the voxels its
-    path happened to cross.
+    way, its solves whole and to ``solver.tol``. Settling the active set makes the result
+    independent of the solves' path: a spatial chunk and the whole scene anchor the same
+    voxels (tests/test_chunks.py), where a fixed number of passes left each with the voxels
+    its path happened to cross.
 
     Returns ``(mean, stats)``: ``converged``, ``iterations`` (summed over the solves of the
     whole band), ``solves`` (those), ``local_solves`` and ``local_iterations`` (the passes
@@ -190,6 +191,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     from kernels.compact import CompactStencil
     from kernels.layout import CENTRE
     from kernels.pcg import pcg
+    from kernels.prior import laplace_curvature_prior, reweight_curvature_prior
 
     S, h = system.S, system.h
     # one layout for every pass: the free-space anchors change only the diagonal
@@ -239,17 +241,18 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     h_norm = float(np.linalg.norm(np.asarray(h, np.float64)))
 
     def local(mean, seeds, tol):
-        """The MAP again after new anchors at ``seeds``, solved only within LOCAL_RINGS
+        """The mean again after new anchors at ``seeds``, solved only within LOCAL_RINGS
         neighbour rings of them (the rest held), to the residual a global solve to ``tol``
-        would stop at; a global solve when the region is more than LOCAL_SHARE of the band."""
+        would stop at; a global solve when the region is more than LOCAL_SHARE of the band.
+        Only for the loose passes: a whole solve to ``solver.tol`` follows them."""
         region = _rings(system.nbr, seeds, LOCAL_RINGS)
         if len(region) > LOCAL_SHARE * len(band):
-            return solved(mean, tol)
-        r = np.asarray(h, np.float64)[region] - compact.apply(mean)[region]
+            return solved(mean, tol)[0]
+        r = h[region].astype(np.float64) - compact.apply(mean)[region]
         r_norm = float(np.linalg.norm(r))
         count["local_solves"] += 1
         if r_norm <= tol * h_norm:
-            return mean, None
+            return mean
         S_r, nbr_r, far_r = _sub_stencil(S, system.nbr, system.far, region)
         # a principal submatrix of the symmetric Q: symmetric by construction, not checked
         d, info = pcg(S_r, nbr_r, r, None, tol=max(tol * h_norm / r_norm, 1e-8),
@@ -258,7 +261,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         count["local_iterations"] += info["iterations"]
         mean = np.array(mean, np.float64)
         mean[region] += d
-        return mean, None
+        return mean
 
     def settle(mean, info, tol, reweights):
         """The robust prior reweighted at the mean before each of the first ``reweights``
@@ -266,8 +269,6 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         no new anchor (True) or ``passes`` solves found one (False)."""
         for step in range(reweights + passes):
             if step < reweights:  # the robust prior's weights at the mean (kernels/prior.py)
-                from kernels.prior import reweight_curvature_prior
-
                 reweight_curvature_prior(S, system.far, system.nbr, mean, W,
                                          lam2=prior.curvature / voxel_size_m ** 2,
                                          scale_m=prior.curvature_scale * voxel_size_m)
@@ -276,7 +277,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
             if not len(seeds) and step >= reweights:
                 return mean, info, True
             if step >= reweights and tol > solver.tol:  # a global solve to solver.tol follows
-                mean, info = local(mean, seeds, tol)
+                mean = local(mean, seeds, tol)
             else:
                 mean, info = solved(mean, tol)
         return mean, info, not (free > 0 and passes > 0)
@@ -298,8 +299,6 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     h[active] -= k * target[active]
     if reweight:  # the variance and the bias's solve see the robust prior's Hessian at the
         # mean; the bias's force, the prior's slope there, its reweighted weights
-        from kernels.prior import laplace_curvature_prior
-
         laplace_curvature_prior(S, system.far, system.nbr, mean, W,
                                 lam2=prior.curvature / voxel_size_m ** 2,
                                 scale_m=prior.curvature_scale * voxel_size_m)
