@@ -426,18 +426,22 @@ class CompactStencil:
         self.nbytes = self._D.nbytes
         self.build_seconds = time.perf_counter() - t0
 
-    def set_diagonal(self, diag: np.ndarray) -> None:
+    def set_diagonal(self, diag: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Replace Q_ii by ``diag`` (N,) (float32; the off-diagonal entries are kept): the
         layout of Q + D for a diagonal change D, e.g. the MAP's free-space passes, without a
-        rebuild (the stencil the products fall back to for non-finite x gets it too)."""
+        rebuild (the stencil the products fall back to for non-finite x gets it too). With
+        ``rows`` (band indices) only those entries are taken from ``diag``: the others have
+        not changed since the last call."""
         diag = np.asarray(diag, np.float32)
         if diag.shape != (self.n,):
             raise ValueError(f"diag must have shape ({self.n},), got {diag.shape}")
-        if not (np.isfinite(diag).all() and (diag > 0).all()):
+        rows = slice(None) if rows is None else np.asarray(rows, np.int64)
+        new = diag[rows]
+        if not (np.isfinite(new).all() and (new > 0).all()):
             raise ValueError("diag must be finite and positive")
-        self._D[1:self.n + 1] = diag  # slot 0 of U, voxel i at position i + 1
+        self._D[1:self.n + 1][rows] = new  # slot 0 of U, voxel i at position i + 1
         if not np.shares_memory(self._S, diag):
-            self._S[:, CENTRE] = diag  # the exact path's copy
+            self._S[rows, CENTRE] = new  # the exact path's copy
 
     def refill(self, S, far=None) -> None:
         """Take every coefficient from ``(S, far)``: a stencil with the neighbour tables the

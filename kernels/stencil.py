@@ -112,12 +112,21 @@ class GatherKernels:
         spread = virtual_iterations()
         V = ti.types.vector(lanes, dtype)
         VD = ti.types.vector(lanes, ti.f64)
-        VI = ti.types.vector(lanes, ti.i32)
         flat_s = ti.types.ndarray(dtype=ti.f32, ndim=1)
         flat_n = ti.types.ndarray(dtype=ti.i32, ndim=1)
         vec = ti.types.ndarray(dtype=V, ndim=1)
         part = ti.types.ndarray(dtype=VD, ndim=1)
         diag = ti.types.ndarray(dtype=ti.f64, ndim=1)
+        # per-lane scalars (alpha, beta, the lane masks) as (lanes,) arrays: a vector argument
+        # costs Taichi ~60 us of Python a launch, an array ~10 us (kernel launches dominate
+        # the solves of small bands)
+        coef = ti.types.ndarray(dtype=ti.f64, ndim=1)
+        lane_mask = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+        @ti.func
+        def lanes_of(A: ti.template(), T: ti.template()):
+            """The (lanes,) array ``A`` as a vector of ``T``."""
+            return ti.Vector([ti.cast(A[k], T) for k in ti.static(range(lanes))])
 
         @ti.func
         def q_row(S: ti.template(), nbr: ti.template(), S2: ti.template(),
@@ -160,11 +169,11 @@ class GatherKernels:
                     pap[c] = s
 
         @ti.kernel
-        def subtract(B: vec, AX: vec, dinv: diag, mask: VI, R: vec, rr: part, rz: part):
+        def subtract(B: vec, AX: vec, dinv: diag, mask: lane_mask, R: vec, rr: part, rz: part):
             """r = b - Ax in the lanes where ``mask`` is set (other lanes keep R), and the
             chunk partials of r·r and r·M^-1 r = sum r_i^2 / Q_ii (float64; deterministic)."""
             n = R.shape[0] - 1
-            on = mask != 0
+            on = lanes_of(mask, ti.i32) != 0
             n_chunks = rr.shape[0]
             n_virtual = ti.max(n_chunks, spread)
             for t in range(n_virtual):
@@ -183,13 +192,13 @@ class GatherKernels:
                     rz[c] = s_rz
 
         @ti.kernel
-        def update_xr(alpha: VD, active: VI, X: vec, R: vec, P: vec, AP: vec, dinv: diag,
-                      rr: part, rz: part):
+        def update_xr(alpha: coef, active: lane_mask, X: vec, R: vec, P: vec, AP: vec,
+                      dinv: diag, rr: part, rz: part):
             """x = x + alpha p, r = r - alpha Ap in the active lanes, and the chunk partials
             of r·r and r·M^-1 r (float64; deterministic)."""
             n = X.shape[0] - 1
-            a = ti.cast(alpha, dtype)
-            on = active != 0
+            a = lanes_of(alpha, dtype)
+            on = lanes_of(active, ti.i32) != 0
             n_chunks = rr.shape[0]
             n_virtual = ti.max(n_chunks, spread)
             for t in range(n_virtual):
@@ -210,10 +219,10 @@ class GatherKernels:
                     rz[c] = s_rz
 
         @ti.kernel
-        def update_p(beta: VD, active: VI, R: vec, dinv: diag, P: vec):
+        def update_p(beta: coef, active: lane_mask, R: vec, dinv: diag, P: vec):
             """p = M^-1 r + beta p in the active lanes (deterministic)."""
-            b = ti.cast(beta, dtype)
-            on = active != 0
+            b = lanes_of(beta, dtype)
+            on = lanes_of(active, ti.i32) != 0
             n = P.shape[0] - 1
             n_chunks = (n + CHUNK - 1) // CHUNK
             n_virtual = ti.max(n_chunks, spread)

@@ -93,23 +93,33 @@ LOCAL_SHARE = 0.5
 """A pass whose region exceeds this share of the band solves the whole band instead."""
 
 
-def _rings(nbr: np.ndarray, seeds: np.ndarray, rings: int) -> np.ndarray:
-    """Sorted band indices within ``rings`` 26-neighbour steps of ``seeds``."""
-    inside = np.zeros(len(nbr) + 1, bool)  # inside[-1]: the missing neighbour, ignored
-    inside[seeds] = True
-    front = np.asarray(seeds)
+def _rings(nbr: np.ndarray, seeds: np.ndarray, rings: int,
+           inside: np.ndarray | None = None) -> np.ndarray:
+    """Sorted band indices within ``rings`` 26-neighbour steps of ``seeds``. ``inside``: an
+    all-False (N,) bool scratch, left all False (its cost then grows with the region, not
+    with the band)."""
+    if inside is None:
+        inside = np.zeros(len(nbr), bool)
+    front = np.unique(seeds)
+    inside[front] = True
+    fronts = [front]
     for _ in range(rings):
-        before = inside.copy()
-        inside[nbr[front].ravel()] = True
-        inside[-1] = False
-        front = np.flatnonzero(inside & ~before)
-    return np.flatnonzero(inside[:-1])
+        reached = nbr[front].ravel()
+        reached = reached[reached >= 0]  # -1: a missing neighbour
+        front = np.unique(reached[~inside[reached]])
+        inside[front] = True
+        fronts.append(front)
+    region = np.sort(np.concatenate(fronts))
+    inside[region] = False
+    return region
 
 
-def _sub_stencil(S, nbr, far, rows: np.ndarray) -> tuple:
+def _sub_stencil(S, nbr, far, rows: np.ndarray, loc: np.ndarray | None = None) -> tuple:
     """The stencil of Q's principal submatrix on the band voxels ``rows`` (sorted):
-    ``(S, nbr, far)`` with the rows' own numbering, links leaving ``rows`` cut."""
-    loc = np.full(len(S) + 1, -1, np.int32)  # loc[-1] (a missing neighbour) stays -1
+    ``(S, nbr, far)`` with the rows' own numbering, links leaving ``rows`` cut. ``loc``: an
+    (N + 1,) int32 scratch of -1, left so."""
+    if loc is None:
+        loc = np.full(len(S) + 1, -1, np.int32)  # loc[-1] (a missing neighbour) stays -1
     loc[rows] = np.arange(len(rows), dtype=np.int32)
     nbr_r = loc[nbr[rows]]
     S_r = np.where(nbr_r >= 0, S[rows], np.float32(0)).astype(np.float32)
@@ -117,6 +127,7 @@ def _sub_stencil(S, nbr, far, rows: np.ndarray) -> tuple:
     if far is not None:
         nbr2_r = loc[far[1][rows]]
         far_r = (np.where(nbr2_r >= 0, far[0][rows], np.float32(0)).astype(np.float32), nbr2_r)
+    loc[rows] = -1
     return S_r, nbr_r, far_r
 
 
@@ -206,6 +217,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         free_mask |= carved
     target = anchor_target(band.tsdf, trunc_m, bootstrap_trunc_m, voxel_size_m)
     active = np.zeros(len(band), bool)
+    waiting = np.flatnonzero(free_mask)  # the free voxels not anchored yet
+    anchored = np.zeros(0, np.int64)  # np.flatnonzero(active)
     k = np.float32(free / voxel_size_m ** 2)
     count = dict(iterations=0, solves=0, passes=0, lifted=0, local_solves=0, local_iterations=0)
 
@@ -219,33 +232,37 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     def anchor(mean) -> np.ndarray:
         """Anchor the free voxels whose mean fell below half a voxel (and raise the targets
         of anchored ones still below 0); the indices of both (empty if there were none)."""
+        nonlocal waiting, anchored
         if free <= 0:
             return np.zeros(0, np.int64)
-        viol = free_mask & ~active & (mean < 0.5 * voxel_size_m)
+        below = mean[waiting] < 0.5 * voxel_size_m
+        viol = waiting[below]
         # an anchor is soft: where the data pull harder, its voxel may stay below 0, the
         # surface in free space; its target is raised by what it lacks of the bound
-        lifted = active & (mean < 0)
-        if not viol.any() and not lifted.any():
+        lifted = anchored[mean[anchored] < 0]
+        if not len(viol) and not len(lifted):
             return np.zeros(0, np.int64)
+        waiting, anchored = waiting[~below], np.union1d(anchored, viol)
         active[viol] = True
         S[viol, CENTRE] += k
         h[viol] += k * target[viol]
         lift = (0.5 * voxel_size_m - mean[lifted]).astype(np.float32)
         target[lifted] += lift
         h[lifted] += k * lift
-        count["lifted"] += int(lifted.sum())
+        count["lifted"] += len(lifted)
         count["passes"] += 1
-        compact.set_diagonal(S[:, CENTRE])
-        return np.flatnonzero(viol | lifted)
+        compact.set_diagonal(S[:, CENTRE], viol)
+        return np.union1d(viol, lifted)
 
     h_norm = float(np.linalg.norm(np.asarray(h, np.float64)))
+    inside, loc = np.zeros(len(band), bool), np.full(len(band) + 1, -1, np.int32)  # scratch
 
     def local(mean, seeds, tol):
         """The mean again after new anchors at ``seeds``, solved only within LOCAL_RINGS
         neighbour rings of them (the rest held), to the residual a global solve to ``tol``
         would stop at; a global solve when the region is more than LOCAL_SHARE of the band.
         Only for the loose passes: a whole solve to ``solver.tol`` follows them."""
-        region = _rings(system.nbr, seeds, LOCAL_RINGS)
+        region = _rings(system.nbr, seeds, LOCAL_RINGS, inside)
         if len(region) > LOCAL_SHARE * len(band):
             return solved(mean, tol)[0]
         r = h[region].astype(np.float64) - compact.apply(mean)[region]
@@ -253,7 +270,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         count["local_solves"] += 1
         if r_norm <= tol * h_norm:
             return mean
-        S_r, nbr_r, far_r = _sub_stencil(S, system.nbr, system.far, region)
+        S_r, nbr_r, far_r = _sub_stencil(S, system.nbr, system.far, region, loc)
         # a principal submatrix of the symmetric Q: symmetric by construction, not checked
         d, info = pcg(S_r, nbr_r, r, None, tol=max(tol * h_norm / r_norm, 1e-8),
                       maxiter=solver.maxiter, far=far_r,
