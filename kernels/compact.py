@@ -424,6 +424,7 @@ class CompactStencil:
         self.scalar_rows = layout["scalar_rows"]
         self._n_chunks = max(1, -(-layout["n_simd"] // _SUBRUNS_PER_CHUNK))
         self.nbytes = self._D.nbytes
+        self._run_of_row = None  # the sub-run of each row (apply_rows), built on first use
         self.build_seconds = time.perf_counter() - t0
 
     def set_diagonal(self, diag: np.ndarray, rows: np.ndarray | None = None) -> None:
@@ -471,6 +472,46 @@ class CompactStencil:
         AP[0] = 0
         with np.errstate(invalid="ignore", over="ignore"):  # non-finite P: the caller checks
             return float(part.sum())
+
+    def apply_rows(self, x: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """``(Q x)[rows]`` for an (N,) float64 ``x`` and band indices ``rows``, bit for bit
+        :meth:`apply`'s values there, at the cost of the sub-runs that hold ``rows`` rather
+        than of the band (the MAP's local passes): :meth:`apply_dot`'s kernel on a table of
+        those sub-runs, kept after the layout's own (the first call makes room for it)."""
+        x = np.asarray(x, np.float64)
+        if x.shape != (self.n,):
+            raise ValueError(f"x must have shape ({self.n},), got {x.shape}")
+        mbase, rbase, n_sub, n_simd, stride = self._args
+        if self._run_of_row is None:  # the sub-run of every row; room for a selection
+            if self._D.size + n_sub * _R_COLS > _INDEX_MASK:
+                return self.apply(x)[rows]
+            size = self._D.size
+            D = zeros_aligned(size + (size - rbase), np.float32)
+            D[:size] = self._D
+            self._D = D
+            table = D[rbase:size].view(np.int32).reshape(n_sub, _R_COLS)
+            start, length = table[:, _R_START].astype(np.int64), table[:, _R_LEN].astype(np.int64)
+            first = np.cumsum(length) - length  # sub-run q's first position in the repeat
+            run_of = np.full(self.n, -1, np.int32)
+            run_of[np.repeat(start - first, length) + np.arange(int(length.sum()))] = \
+                np.repeat(np.arange(n_sub, dtype=np.int32), length)
+            if (run_of < 0).any():
+                raise RuntimeError("CompactStencil: the sub-runs do not cover every row")
+            self._run_of_row = run_of
+        runs = np.unique(self._run_of_row[np.asarray(rows, np.int64)])  # SIMD ones first
+        sel_base = rbase + n_sub * _R_COLS
+        table = self._D[rbase:sel_base].view(np.int32).reshape(n_sub, _R_COLS)
+        self._D[sel_base:sel_base + len(runs) * _R_COLS].view(np.int32)[:] = \
+            table[runs].reshape(-1)
+        n_simd_sel = int(np.searchsorted(runs, n_simd))
+        xp = zeros_aligned(self.n + 1, np.float64)
+        xp[1:] = x
+        yp = zeros_aligned(self.n + 1, np.float64)
+        ker = _compact_kernels(np.float64, self.far)
+        part = np.empty((max(1, -(-n_simd_sel // _SUBRUNS_PER_CHUNK)), ker.lanes))
+        if len(runs):
+            ker.apply_dot(self._D, mbase, sel_base, len(runs), n_simd_sel, stride, xp, yp, part)
+        return yp[1:][rows]
 
     def apply(self, x, out=None, padded: bool = False) -> np.ndarray:
         """``out = Q x`` for one vector; the same arguments and result as :func:`apply_Q`

@@ -244,6 +244,44 @@ def test_compact_refill_equals_a_rebuild(large):
         op.refill(S_new[:-1], (S2_new, nbr2))
 
 
+def test_compact_rows_of_the_product_are_those_of_the_whole_product(large):
+    """The MAP's local passes need Q x on a region only (apply_rows): bit for bit the whole
+    product's rows there, for regions of single rows, blocks and most of the band, and after
+    a diagonal change given for some rows only (set_diagonal(diag, rows))."""
+    from kernels.prior import add_curvature_prior
+    rng = np.random.default_rng(13)
+    S, nbr = large["S"].copy(), large["nbr"]
+    S2, nbr2 = add_curvature_prior(S, nbr, lam2=0.5)
+    op = CompactStencil(S, nbr, (S2, nbr2))
+    x = rng.standard_normal(len(S))
+    for rows in (np.array([0]), np.array([len(S) - 1]), np.arange(40, 90),
+                 np.flatnonzero(rng.random(len(S)) < 0.6), np.arange(len(S))):
+        assert np.array_equal(op.apply_rows(x, rows), op.apply(x)[rows])
+    some = np.flatnonzero(rng.random(len(S)) < 0.1)
+    S[some, 13] += 7.0
+    op.set_diagonal(S[:, 13], some)
+    fresh = CompactStencil(S, nbr, (S2, nbr2))
+    assert np.array_equal(op.apply(x), fresh.apply(x))
+    assert np.array_equal(op.apply_rows(x, some), fresh.apply(x)[some])
+
+
+def test_rings_of_a_region_are_the_breadth_first_neighbourhood(large):
+    """The local passes' region: every voxel within r 26-neighbour steps of the seeds, once,
+    sorted; the scratch comes back as it went in."""
+    from bftaichi.stages.solve import _rings
+    nbr = large["nbr"]
+    seeds = np.array([5, 5, 300, 301])
+    mark = np.full(len(nbr), -1, np.int32)
+    for r in (0, 1, 3):
+        seen, front = set(seeds.tolist()), set(seeds.tolist())
+        for _ in range(r):
+            front = {int(j) for i in front for j in nbr[i] if j >= 0} - seen
+            seen |= front
+        region = _rings(nbr, seeds, r, mark)
+        assert region.tolist() == sorted(seen)
+        assert (mark == -1).all()
+
+
 def test_bad_stencils_are_rejected(small):
     S, nbr = small["S"], small["nbr"]
     check_stencil(S, nbr)  # the valid one passes

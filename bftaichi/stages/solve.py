@@ -94,23 +94,27 @@ LOCAL_SHARE = 0.5
 
 
 def _rings(nbr: np.ndarray, seeds: np.ndarray, rings: int,
-           inside: np.ndarray | None = None) -> np.ndarray:
-    """Sorted band indices within ``rings`` 26-neighbour steps of ``seeds``. ``inside``: an
-    all-False (N,) bool scratch, left all False (its cost then grows with the region, not
-    with the band)."""
-    if inside is None:
-        inside = np.zeros(len(nbr), bool)
-    front = np.unique(seeds)
-    inside[front] = True
+           mark: np.ndarray | None = None) -> np.ndarray:
+    """Sorted band indices within ``rings`` 26-neighbour steps of ``seeds`` (unique). ``mark``:
+    an (N,) int32 scratch of -1, left so (the cost then grows with the region, not with the
+    band; no sort but the last)."""
+    if mark is None:
+        mark = np.full(len(nbr), -1, np.int32)
+    front = np.unique(np.asarray(seeds, np.int64))
+    mark[front] = 0
     fronts = [front]
-    for _ in range(rings):
+    for ring in range(1, rings + 1):
         reached = nbr[front].ravel()
         reached = reached[reached >= 0]  # -1: a missing neighbour
-        front = np.unique(reached[~inside[reached]])
-        inside[front] = True
+        reached = reached[mark[reached] < 0]
+        # each new voxel once: the last of its copies keeps its position in ``order``
+        order = np.arange(len(reached), dtype=np.int32)
+        mark[reached] = order
+        front = reached[mark[reached] == order].astype(np.int64)
+        mark[front] = ring
         fronts.append(front)
     region = np.sort(np.concatenate(fronts))
-    inside[region] = False
+    mark[region] = -1
     return region
 
 
@@ -218,7 +222,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     target = anchor_target(band.tsdf, trunc_m, bootstrap_trunc_m, voxel_size_m)
     active = np.zeros(len(band), bool)
     waiting = np.flatnonzero(free_mask)  # the free voxels not anchored yet
-    anchored = np.zeros(0, np.int64)  # np.flatnonzero(active)
+    anchored = np.zeros(0, np.int64)  # the indices of active, in the order anchored
     k = np.float32(free / voxel_size_m ** 2)
     count = dict(iterations=0, solves=0, passes=0, lifted=0, local_solves=0, local_iterations=0)
 
@@ -242,7 +246,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         lifted = anchored[mean[anchored] < 0]
         if not len(viol) and not len(lifted):
             return np.zeros(0, np.int64)
-        waiting, anchored = waiting[~below], np.union1d(anchored, viol)
+        waiting, anchored = waiting[~below], np.concatenate([anchored, viol])
         active[viol] = True
         S[viol, CENTRE] += k
         h[viol] += k * target[viol]
@@ -255,17 +259,17 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         return np.union1d(viol, lifted)
 
     h_norm = float(np.linalg.norm(np.asarray(h, np.float64)))
-    inside, loc = np.zeros(len(band), bool), np.full(len(band) + 1, -1, np.int32)  # scratch
+    mark, loc = np.full(len(band), -1, np.int32), np.full(len(band) + 1, -1, np.int32)  # scratch
 
     def local(mean, seeds, tol):
         """The mean again after new anchors at ``seeds``, solved only within LOCAL_RINGS
         neighbour rings of them (the rest held), to the residual a global solve to ``tol``
         would stop at; a global solve when the region is more than LOCAL_SHARE of the band.
         Only for the loose passes: a whole solve to ``solver.tol`` follows them."""
-        region = _rings(system.nbr, seeds, LOCAL_RINGS, inside)
+        region = _rings(system.nbr, seeds, LOCAL_RINGS, mark)
         if len(region) > LOCAL_SHARE * len(band):
             return solved(mean, tol)[0]
-        r = h[region].astype(np.float64) - compact.apply(mean)[region]
+        r = h[region].astype(np.float64) - compact.apply_rows(mean, region)
         r_norm = float(np.linalg.norm(r))
         count["local_solves"] += 1
         if r_norm <= tol * h_norm:
