@@ -280,7 +280,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
                       maxiter=solver.maxiter, far=far_r,
                       compact=CompactStencil(S_r, nbr_r, far_r, check=False))
         count["local_iterations"] += info["iterations"]
-        mean = np.array(mean, np.float64)
+        mean = np.asarray(mean, np.float64)  # a solve's own array: updated in place
         mean[region] += d
         return mean
 
