@@ -206,6 +206,26 @@ def test_an_occluded_view_scores_lower():
     assert np.median(depth[depth > 0]) == pytest.approx(0.5, abs=voxel)
 
 
+def test_a_seen_voxel_never_scores_above_an_unseen_one():
+    """The planner scores an unseen voxel at s0, the variance of an SDF known only to lie
+    within the bootstrap truncation. A seen voxel whose variance is larger (the prior's bias,
+    an offset in the variance, reached centimetres on a few voxels of a sparse scan and
+    decided the ranking) is scored at s0: no view gains more from it than from unseen space."""
+    voxel = 0.02
+    patch = (np.array([-0.2, -0.2, -0.04]), np.array([0.2, 0.2, 0.0]), 1.0)  # sigma 1 m
+    post = analytic_posterior(voxel, [patch])
+    cfg = load_config(None, ["tsdf.voxel_size_m=0.02", "tsdf.trunc_m=0.04",
+                             "observation.stride=1"])
+    K = np.array([[60.0, 0, 39.5], [0, 60.0, 29.5], [0, 0, 1]])
+    planner = nbv.Planner(post, cfg, K, (80, 60))
+    from bftaichi.geometry import look_at
+
+    u = planner.utility(look_at([0, 0, 1.0], [0, 0, 0], up=(0, 1, 0)))
+    assert u["known"] > 0
+    assert planner.s_omega.max() <= planner.s0
+    assert u["known"] <= planner.omega.sum() * planner.s0
+
+
 def test_a_view_of_unseen_surface_beats_re_observing_a_seen_side(half_sphere):
     cfg, frames, _, post = half_sphere
     lo, hi = nbv.region_of_interest(post.ijk, post.voxel_size, 1.5, [0, 0, 0])

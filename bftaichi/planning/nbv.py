@@ -13,7 +13,10 @@ For a candidate view ``v`` (pose ``T_W_C``, the run's intrinsics):
 3. **Known surface**: ``U_known = sum_{i in Omega_eps} (s_i - s'_i)`` over the observed band
    voxels with ``|mu_i| <= eps``, with the *local update* ``s'_i = s_i / (1 + s_i d_i)``: the
    exact posterior variance of voxel i if the view's information on it were the only change
-   (a rank-one update of Q along ``e_i``). It ignores the correlations between voxels (what
+   (a rank-one update of Q along ``e_i``), ``s_i`` the posterior variance capped at step 4's
+   ``s0``: a seen voxel is no less certain than an unseen one (the prior's bias, which the
+   variance carries as an offset, reached centimetres on a few voxels of a two-view scan,
+   and without the cap those few ranked the views; docs/measurements.md). It ignores the correlations between voxels (what
    one voxel learns, its correlated neighbours partly knew; a view's information couples
    neighbouring voxels), so it is off the exact reduction, by 0.52-2.05x on the small problem
    of tests/test_nbv.py, but ranks the candidates like it: checked against
@@ -276,11 +279,13 @@ class Planner:
         self.observer.release()  # information() needs only the lookups and the model
         eps = cfg.nbv.eps_voxels * vs
         self.omega = (post.weight > 0) & (np.abs(post.mean) <= eps)
-        s = np.asarray(post.var, np.float64)
-        self.s_omega = s[self.omega]
         # prior variance of an unseen voxel: its SDF, clamped to the bootstrap truncation
         # (alpha tau), could be anywhere in [-alpha tau, alpha tau]: uniform, variance (.)^2 / 3
         self.s0 = (post.bootstrap_trunc_m or cfg.tsdf.bootstrap_trunc_m) ** 2 / 3.0
+        # a seen voxel is no less certain than an unseen one: its variance is capped at s0
+        # (the prior's bias, added to the variance as an offset, reaches centimetres on a
+        # few voxels of a sparse scan, and those few then decided the ranking)
+        self.s_omega = np.minimum(np.asarray(post.var, np.float64)[self.omega], self.s0)
         self.rho = 0.0  # Omega voxels per seen cell that holds any
         if coverage is not None and self.omega.any():
             centres = points_in_world((post.ijk[self.omega] + 0.5) * vs, post.origin)
