@@ -16,8 +16,9 @@ For a candidate view ``v`` (pose ``T_W_C``, the run's intrinsics):
    (a rank-one update of Q along ``e_i``), ``s_i`` the posterior variance capped at step 4's
    ``s0``: a seen voxel is no less certain than an unseen one (the prior's bias, which the
    variance carries as an offset, reached centimetres on a few voxels of a two-view scan,
-   and without the cap those few ranked the views; docs/measurements.md). It ignores the correlations between voxels (what
-   one voxel learns, its correlated neighbours partly knew; a view's information couples
+   and without the cap those few ranked the views; docs/measurements.md). It ignores the
+   correlations between voxels (what one voxel learns, its correlated neighbours partly knew;
+   a view's information couples
    neighbouring voxels), so it is off the exact reduction, by 0.52-2.05x on the small problem
    of tests/test_nbv.py, but ranks the candidates like it: checked against
    ``diag((Q + A_v^T W_v A_v)^-1)`` there (Spearman of the two rankings over 16 candidates

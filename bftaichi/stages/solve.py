@@ -220,9 +220,8 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     if carved is not None:
         free_mask |= carved
     target = anchor_target(band.tsdf, trunc_m, bootstrap_trunc_m, voxel_size_m)
-    active = np.zeros(len(band), bool)
     waiting = np.flatnonzero(free_mask)  # the free voxels not anchored yet
-    anchored = np.zeros(0, np.int64)  # the indices of active, in the order anchored
+    anchored = np.zeros(0, np.int64)  # the anchored voxels, in the order anchored
     k = np.float32(free / voxel_size_m ** 2)
     count = dict(iterations=0, solves=0, passes=0, lifted=0, local_solves=0, local_iterations=0)
 
@@ -247,7 +246,6 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         if not len(viol) and not len(lifted):
             return np.zeros(0, np.int64)
         waiting, anchored = waiting[~below], np.concatenate([anchored, viol])
-        active[viol] = True
         S[viol, CENTRE] += k
         h[viol] += k * target[viol]
         lift = (0.5 * voxel_size_m - mean[lifted]).astype(np.float32)
@@ -313,11 +311,11 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     if loose > solver.tol:
         mean, info = solved(mean, solver.tol)
         mean, info, settled = settle(mean, info, solver.tol, 0)
-    n_free, n_anchored = (int(free_mask.sum()), int(active.sum())) if free > 0 else (0, 0)
+    n_free, n_anchored = (int(free_mask.sum()), len(anchored)) if free > 0 else (0, 0)
     # the anchors enforce an inequality on the mean; they are not measurements, so the
     # variance (step 6, on the same system) is that of the data and the prior without them
-    S[active, CENTRE] -= k
-    h[active] -= k * target[active]
+    S[anchored, CENTRE] -= k
+    h[anchored] -= k * target[anchored]
     if reweight:  # the variance and the bias's solve see the robust prior's Hessian at the
         # mean; the bias's force, the prior's slope there, its reweighted weights
         laplace_curvature_prior(S, system.far, system.nbr, mean, W,
