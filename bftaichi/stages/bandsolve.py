@@ -37,8 +37,12 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
     if noise is None:
         noise = fit_noise(cfg, band, frames)
     lap("noise")
+    # observation.shared_in_map: the correlated part shared by the L frames of a run (at most
+    # every frame: one error shared by all of them)
+    L = (min(max(float(noise.get("frames_sharing_noise", 1.0)), 1.0), max(len(frames), 1))
+         if o.shared_in_map else 1.0)
     observer = make_observer(band, o, vs, tau, noise["sigma_extra_m"],            # step 3
-                             noise["sigma_corr_m"])
+                             noise["sigma_corr_m"] * L ** 0.5)
     free_space = None
     if cfg.prior.free > 0 and cfg.prior.carve > 0:
         from kernels.carve import FreeSpaceCounter
