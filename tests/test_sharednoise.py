@@ -119,36 +119,20 @@ def test_sigma_covers_the_error_of_drifting_poses(seed):
     (58 / 62 % of the vertices within 2 sigma); counted as runs of frames that share one
     error, at least 95 % are within 2 sigma (wider than a Gaussian's 68 % within 1 sigma on
     this small scene: 87-92 %), and the surface is the same."""
-    from conftest import solved
-
-    off = gaussian_filter1d(np.random.default_rng(seed).normal(0, 1, 48), SPAN / np.sqrt(2),
-                            mode="nearest")
-    off = off / off.std() * 0.006
     within, means = {}, {}
     for order in ("true", "false"):
-        cfg = _sphere(order)
-        frames = []
-        for f, o in zip(open_frames(cfg), off):
-            T = np.array(f.T_W_C, np.float64)
-            T[:3, 3] += o * T[:3, 2]
-            frames.append(type(f)(index=f.index, name=f.name, depth_m=f.depth_m, K=f.K,
-                                  T_W_C=T, rgb=None))
-        post = solved(cfg, frames)[1]
-        mesh = post.extract_mesh()
-        error = np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.15)
-        sigma = np.asarray(mesh.vertex_attributes["sigma"], np.float64)
-        within[order] = float(np.mean(error <= 2 * sigma))
+        post = _drifted_sphere(_sphere(order), 0.006, seed)
+        within[order] = _within_2_sigma(post)
         means[order] = post.mean
     assert within["true"] >= 0.95 and within["false"] <= 0.7, within
     np.testing.assert_array_equal(means["true"], means["false"])
 
 
-def _drifted_sphere(shared_in_map: bool, rms_m: float, seed: int = 1):
-    """:func:`_sphere`'s frames at poses drifting ``rms_m`` along the camera axis, solved."""
+def _drifted_sphere(cfg, rms_m: float, seed: int = 1):
+    """:func:`_sphere` ``cfg``'s frames at poses drifting ``rms_m`` along the camera axis
+    (correlated over ~17 frames), solved: the Posterior."""
     from conftest import solved
 
-    cfg = _sphere("true")
-    cfg = replace(cfg, observation=replace(cfg.observation, shared_in_map=shared_in_map))
     off = gaussian_filter1d(np.random.default_rng(seed).normal(0, 1, 48), SPAN / np.sqrt(2),
                             mode="nearest")
     off = off / off.std() * rms_m
@@ -161,19 +145,30 @@ def _drifted_sphere(shared_in_map: bool, rms_m: float, seed: int = 1):
     return solved(cfg, frames)[1]
 
 
+def _within_2_sigma(post) -> float:
+    """The share of the sphere's mesh vertices within 2 sigma of the true surface."""
+    mesh = post.extract_mesh()
+    error = np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.15)
+    sigma = np.asarray(mesh.vertex_attributes["sigma"], np.float64)
+    return float(np.mean(error <= 2 * sigma))
+
+
+def _shared_in_map(on: bool):
+    """:func:`_sphere` in time order, with ``observation.shared_in_map = on``."""
+    cfg = _sphere("true")
+    return replace(cfg, observation=replace(cfg.observation, shared_in_map=on))
+
+
 def test_the_map_counts_a_run_of_frames_once_only_where_frames_share_their_error():
     """observation.shared_in_map: with the drift of the test above (L > 1) the MAP weighs
     each frame's shared error as one of a run of L, so the mean moves, and sigma still covers
     the error (at least 95 % of the vertices within 2 sigma); with poses that do not drift the
     fit finds L = 1 and the posterior is the same, bit for bit."""
-    drifted = {s: _drifted_sphere(s, 0.006) for s in (False, True)}
+    drifted = {s: _drifted_sphere(_shared_in_map(s), 0.006) for s in (False, True)}
     assert drifted[True].observations["noise_fit"]["frames_sharing_noise"] > 1.0
     assert not np.array_equal(drifted[True].mean, drifted[False].mean)
-    mesh = drifted[True].extract_mesh()
-    error = np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.15)
-    sigma = np.asarray(mesh.vertex_attributes["sigma"], np.float64)
-    assert np.mean(error <= 2 * sigma) >= 0.95
-    still = {s: _drifted_sphere(s, 0.0) for s in (False, True)}
+    assert _within_2_sigma(drifted[True]) >= 0.95
+    still = {s: _drifted_sphere(_shared_in_map(s), 0.0) for s in (False, True)}
     assert still[True].observations["noise_fit"]["frames_sharing_noise"] == 1.0
     for field in ("mean", "var", "cov"):
         np.testing.assert_array_equal(getattr(still[True], field), getattr(still[False], field))
