@@ -105,17 +105,19 @@ class ObservationConfig:
     one error of its extra noise spans (:func:`.sharednoise.frames_sharing_noise`; 1 where it
     finds no significant sharing, as with independent noise), and the data's part of the
     variance counts those frames as one (:func:`.sharednoise.shared_noise_factor`); the MAP
-    does not change. Set false for frames in no particular order. report.json:
+    does not change (unless ``shared_in_map``). Set false for frames in no particular order. report.json:
     ``solver.observations.noise_fit.frames_sharing_noise``."""
 
     shared_in_map: bool = False
     """Count the frames' shared extra noise in the MAP as well (with ``in_time_order``): each
     frame's correlated part ``sigma_corr^2`` is taken as shared by the ``L`` frames one error
-    spans, so a frame tells a voxel at most ``1 / (L sigma_corr^2)`` of it and a run of ``L``
-    frames about what one frame's pose error allows; the variance's ``kappa`` is then 1, as the
-    data term already counts the sharing. Where the fit finds ``L`` = 1 (frames in no order,
-    synthetic rings, independent jitter) nothing changes. Measured on held-out real views in
-    docs/measurements.md ("The frames' shared pose error in the MAP")."""
+    spans (at most the frames fused), so a frame tells a voxel at most ``1 / (L sigma_corr^2)``
+    of it and a run of ``L`` frames about what one frame's pose error allows. The variance
+    keeps its ``kappa`` (with ``kappa`` set to 1 the sigma of a drifting scan covered far too
+    little of its error). Where the fit finds ``L`` = 1 (frames in no order, synthetic rings,
+    independent jitter) nothing changes. Off by default: on held-out real views it lowers the
+    2 cm mean error and raises the 1 cm one (docs/measurements.md, "The frames' shared pose
+    error in the MAP")."""
 
     local_noise: bool = True
     """Judge the noise model against the data around each voxel after the solve
