@@ -8,9 +8,9 @@ import trimesh
 
 from bftaichi.errors import BftaichiError, DataError
 from bftaichi.io import write_mesh_ply
-from bftaichi.evaluation.metrics import (format_table, geometry_metrics, load_mesh, spearman,
-                                        surface_distances, surface_distances_many, surface_sdf,
-                                        uncertainty_metrics)
+from bftaichi.evaluation.metrics import (SampledSurface, format_table, geometry_metrics,
+                                        load_mesh, seen_points, spearman, surface_distances,
+                                        surface_distances_many, surface_sdf, uncertainty_metrics)
 
 THRESHOLDS = (5, 10, 20, 50)
 
@@ -252,3 +252,41 @@ def test_uncertainty_metrics_reject_bad_input():
         uncertainty_metrics(np.zeros(3), np.ones(2), np.zeros(3))
     with pytest.raises(BftaichiError, match="finite"):
         uncertainty_metrics(np.array([0.0, np.nan]), np.ones(2), np.zeros(2))
+
+
+def test_seen_points_are_those_no_surface_hid_from_a_frame():
+    """A camera 2 m above the unit square, looking down (-z): points on the square are seen,
+    the same points 5 cm below it are hidden by it, points outside the image are unseen, and a
+    frame whose pixels are invalid sees nothing."""
+    from types import SimpleNamespace
+
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # camera z along world -z
+    T[:3, 3] = (0.5, 0.5, 2.0)
+    D = np.full((101, 101), 2.0)  # the square fills the image at depth 2 m
+    frame = SimpleNamespace(depth_m=D, K=K, T_W_C=T)
+    rng = np.random.default_rng(0)
+    on = np.c_[rng.uniform(0.3, 0.7, (200, 2)), np.zeros(200)]
+    below = on - (0, 0, 0.05)
+    outside = on + (5.0, 0, 0)
+    seen = seen_points(np.r_[on, below, outside], [frame], lambda d: 0.001 + 0 * d)
+    assert seen[:200].all() and not seen[200:].any()
+    dark = SimpleNamespace(depth_m=np.zeros_like(D), K=K, T_W_C=T)
+    assert not seen_points(on, [dark], lambda d: 0.001 + 0 * d).any()
+
+
+def test_chamfer_split_adds_up_and_puts_a_missing_part_where_it_is_missing():
+    """The parts of ``chamfer_split`` sum to geometry_metrics' chamfer_l2; a prediction that
+    covers only half the square has its Chamfer distance in the uncovered half."""
+    gt = unit_square(0.0, n=4)
+    half = unit_square(0.0, n=4)
+    half.vertices[:, 0] *= 0.5
+    target = SampledSurface(gt, 20000, seed=0)
+    mask = target.points()[:, 0] < 0.5
+    inside, outside = target.chamfer_split(half, mask)
+    total = geometry_metrics(half, gt, thresholds_mm=(10,), n_samples=20000)["chamfer_l2"]
+    assert inside + outside == pytest.approx(total, rel=1e-12)
+    assert inside < 1e-3 * outside  # sample spacing alone on the covered half
+    with pytest.raises(BftaichiError):
+        target.chamfer_split(half, mask[:-1])

@@ -24,8 +24,8 @@ import numpy as np
 
 from ..errors import BftaichiError, DataError
 
-__all__ = ["geometry_metrics", "surface_distances", "surface_distances_many", "surface_sdf",
-           "SampledSurface", "SurfaceSDF",
+__all__ = ["geometry_metrics", "seen_points", "surface_distances", "surface_distances_many",
+           "surface_sdf", "SampledSurface", "SurfaceSDF",
            "uncertainty_metrics", "spearman",
            "load_mesh", "check_mesh_file", "format_table", "DEFAULT_THRESHOLDS_MM",
            "near_surface_voxels", "band_sdf", "band_uncertainty", "vertex_errors",
@@ -236,9 +236,39 @@ class SampledSurface:
             self._points, _ = sample_surface(self.gt, self.n_samples, seed=self.seed)
             self._tree = cKDTree(self._points)
 
+    def points(self) -> np.ndarray:
+        """The (n_samples, 3) ground-truth samples (sampled now if not yet)."""
+        self.index()
+        return self._points
+
+    def chamfer_split(self, pred, mask: np.ndarray) -> tuple[float, float] | None:
+        """``chamfer_l2`` of ``pred`` split by the ground-truth samples' ``mask`` (n_samples,)
+        bool: ``(part where mask, part elsewhere)``, each ``(sum d_pg^2 + sum d_gp^2) /
+        n_samples`` over its samples, a predicted sample counting with the class of the
+        ground-truth sample nearest to it; the two add up to :func:`geometry_metrics`'
+        ``chamfer_l2`` (the same samples). None when ``pred`` has no surface."""
+        mask = np.asarray(mask, bool)
+        if mask.shape != (self.n_samples,):
+            raise BftaichiError(f"mask must have shape ({self.n_samples},), got {mask.shape}")
+        matched = self._match(pred)
+        if matched is None:
+            return None
+        d_pg, nearest, d_gp = matched
+        p_in = mask[nearest]
+        inside = (np.sum(d_pg[p_in] ** 2) + np.sum(d_gp[mask] ** 2)) / self.n_samples
+        outside = (np.sum(d_pg[~p_in] ** 2) + np.sum(d_gp[~mask] ** 2)) / self.n_samples
+        return float(inside), float(outside)
+
     def distances(self, pred) -> tuple[np.ndarray, np.ndarray] | None:
         """``(d_pg, d_gp)`` of ``pred`` (:func:`surface_distances`), None when ``pred`` has no
         surface."""
+        matched = self._match(pred)
+        return None if matched is None else (matched[0], matched[2])
+
+    def _match(self, pred):
+        """``(d_pg, nearest, d_gp)``: ``pred``'s samples' distances to the ground truth's and
+        the index of the nearest, and the ground truth's samples' distances to ``pred``'s; None
+        when ``pred`` has no surface."""
         from scipy.spatial import cKDTree
         from trimesh.sample import sample_surface
 
@@ -247,9 +277,40 @@ class SampledSurface:
             return None
         self.index()
         pts_p, _ = sample_surface(pred, self.n_samples, seed=self.seed)
-        d_pg, _ = self._tree.query(pts_p, k=1, workers=-1)
+        d_pg, nearest = self._tree.query(pts_p, k=1, workers=-1)
         d_gp, _ = cKDTree(pts_p).query(self._points, k=1, workers=-1)
-        return d_pg, d_gp
+        return d_pg, nearest, d_gp
+
+
+def seen_points(points: np.ndarray, frames, sigma_m, tol: float = 3.0,
+                slack_m: float = 0.001) -> np.ndarray:
+    """(n,) bool: the world ``points`` (n, 3) that at least one of ``frames`` observed. A point
+    is observed by a frame (``depth_m`` (H, W) metres, 0 invalid; ``K``; ``T_W_C``) when it lies
+    in front of the camera, projects to a pixel (nearest) with a valid depth, and that depth is
+    within ``tol * sigma_m(depth) + slack_m`` of the point's own camera depth: nothing hid it.
+    ``sigma_m``: the frames' axial depth noise (metres) as a function of depth (arrays).
+    Vectorised per frame (numpy); deterministic."""
+    points = np.asarray(points, np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise BftaichiError(f"points must have shape (n, 3), got {points.shape}")
+    seen = np.zeros(len(points), bool)
+    for i in range(len(frames)):
+        f = frames[i]
+        D = np.asarray(f.depth_m, np.float64)
+        T = np.asarray(f.T_W_C, np.float64)
+        K = np.asarray(f.K, np.float64)
+        p_c = (points - T[:3, 3]) @ T[:3, :3]  # world -> camera: R^T (p - t)
+        z = p_c[:, 2]
+        front = np.flatnonzero(z > 1e-9)
+        u = np.round(K[0, 0] * p_c[front, 0] / z[front] + K[0, 2]).astype(np.int64)
+        v = np.round(K[1, 1] * p_c[front, 1] / z[front] + K[1, 2]).astype(np.int64)
+        keep = (u >= 0) & (u < D.shape[1]) & (v >= 0) & (v < D.shape[0])
+        idx, u, v = front[keep], u[keep], v[keep]
+        d = D[v, u]
+        valid = d > 0
+        idx, d = idx[valid], d[valid]
+        seen[idx[np.abs(d - z[idx]) <= tol * np.asarray(sigma_m(d)) + slack_m]] = True
+    return seen
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,70 @@
+#!/usr/bin/env python
+"""Where a run's Chamfer distance comes from: the part of the true surface its frames saw, or
+the part none saw (a diagnosis for issue 15's geometry targets).
+
+For a synthetic run folder (``bftaichi run`` of a synthetic scene, e.g. one case of
+``tools/suite.py``), the true mesh is sampled as ``geometry_metrics`` samples it (200k points,
+seed 0, ``cfg.eval``), and each true sample is *seen* when at least one of the run's frames
+observed it: it projects into the frame with a valid depth within ``--tol`` times the frame's
+axial noise (plus 1 mm) of its own camera depth, i.e. nothing hid it
+(:func:`bftaichi.evaluation.metrics.seen_points`, with the noise the frames were rendered
+with). Each predicted sample takes the class of the true sample nearest to it. Printed per mesh (``mesh.ply``,
+``tsdf_mesh.ply``): the accuracy (predicted to true, mean) and, per class, the completeness
+(true to predicted, mean) and the class's part of the Chamfer distance, ``mean(d_pg^2) +
+mean(d_gp^2)`` summed over that class's samples only (the two parts add up to the run's
+``chamfer_l2``: ``SampledSurface.chamfer_split``)::
+
+    python docs/experiments/seen_unseen.py OUT_DIR [OUT_DIR ...]
+
+The frames are rendered again from the run's ``config.toml`` (the same seed, the same noise).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path[:0] = [str(ROOT), str(ROOT / "tools")]  # this checkout's bftaichi, tools/suite.py
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=Path, help="run folders of synthetic scenes")
+    ap.add_argument("--tol", type=float, default=3.0,
+                    help="depth agreement, in axial noise sigmas (plus 1 mm; default 3)")
+    args = ap.parse_args(argv)
+
+    import trimesh
+
+    import bftaichi as bf
+    from bftaichi.evaluation.metrics import SampledSurface, seen_points
+    from bftaichi.running.pipeline import load_gt_mesh, open_frames
+    from suite import synthetic_sigma
+
+    for run in args.runs:
+        cfg = bf.load_config(run / "config.toml", [])
+        frames = open_frames(cfg)
+        gt = load_gt_mesh(cfg, frames)
+        if gt is None:
+            raise SystemExit(f"seen_unseen: {run} has no ground-truth mesh")
+        target = SampledSurface(gt, cfg.eval.n_samples, cfg.eval.seed)  # as the run's metrics
+        seen = seen_points(target.points(), frames, synthetic_sigma(cfg.synthetic), args.tol)
+        print(f"{run}: {len(frames)} frames, {100 * seen.mean():.1f} % of the true surface seen")
+        for name in ("mesh.ply", "tsdf_mesh.ply"):
+            pred = trimesh.load(run / name, process=False)
+            d_pg, d_gp = target.distances(pred)
+            part_seen, part_unseen = target.chamfer_split(pred, seen)
+            cd = part_seen + part_unseen
+            print(f"  {name}: chamfer_l2 {cd:.3e}, accuracy {1000 * d_pg.mean():.3f} mm")
+            for label, g, part in (("seen", seen, part_seen), ("unseen", ~seen, part_unseen)):
+                comp = 1000 * d_gp[g].mean() if g.any() else float("nan")
+                print(f"    {label:6s}: completeness {comp:.3f} mm, CD part {part:.3e} "
+                      f"({100 * part / cd:.0f} %)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
