@@ -192,6 +192,19 @@ def test_suite_diff_shows_what_moved_and_the_targets_of_both(tmp_path):
             "1.000" in out)
     same = _run([TOOLS / "suite_diff.py", tmp_path / "old.json", tmp_path / "old.json"])
     assert "no case moved" in same
+    # the CD on the surface the frames saw: a run from before the split has none (no move);
+    # between two runs with it, a change is listed
+    seen = {n: {**r, "seen_share": 0.9, "cd_seen_tsdf": 1e-5, "cd_seen_post": 6e-6}
+            for n, r in old.items()}
+    moved = {**seen, "homer/few_views": {**seen["homer/few_views"], "cd_seen_post": 9e-6}}
+    for name, rows in (("seen.json", seen), ("moved.json", moved)):
+        (tmp_path / name).write_text(json.dumps({"sets": [], "rows": rows}))
+    assert "no case moved" in _run([TOOLS / "suite_diff.py", tmp_path / "old.json",
+                                    tmp_path / "seen.json"])
+    out = _run([TOOLS / "suite_diff.py", tmp_path / "seen.json", tmp_path / "moved.json"])
+    listed = [ln for ln in out.splitlines() if ln.startswith("| ") and "/" in ln.split("|")[1]]
+    assert len(listed) == 1 and "| 0.600 -> 0.900 |" in listed[0]
+    assert "on the surface the frames saw: CD <= TSDF on 2/2" in out
 
 
 def test_bench_pose_update_checks_exactness_on_real_frames():

@@ -6,8 +6,9 @@ run has is listed as such) and prints the summary line of each; then, over the c
 have, the scores the target counts hide: the mean NLL minus the best constant's (a proper
 score: calibration and sharpness in one number; lower is better), the geometric mean of the
 AUSE ratio new / old and the mean Spearman; then one row per case whose
-missed targets or any of whose figures, rounded as printed, changed: the CD ratio, the
-coverage at 1 / 2 / 3 sigma, the NLL minus the best constant's, AUSE and Spearman, each as
+missed targets or any of whose figures, rounded as printed, changed: the CD ratio (and on the
+surface the frames saw: nan for a run from before the suite split it), the coverage at 1 / 2 / 3
+sigma, the NLL minus the best constant's, AUSE and Spearman, each as
 old -> new, and the missed targets of both::
 
     python tools/suite.py --json before.json
@@ -31,6 +32,8 @@ from suite import misses, summary  # noqa: E402
 #: (label, value of a row, format): a figure moved when its formatted value changed
 FIGURES = (
     ("CD ratio", lambda r: r["cd_post"] / r["cd_tsdf"], "{:.3f}"),
+    ("seen CD ratio", lambda r: (r["cd_seen_post"] / r["cd_seen_tsdf"] if "cd_seen_post" in r
+                                 else math.nan), "{:.3f}"),  # nan: a run from before the split
     ("cov 1/2/3 sigma (%)", lambda r: tuple(100 * r[f"coverage@{k}sigma"] for k in (1, 2, 3)),
      "{:.0f} / {:.0f} / {:.1f}"),
     ("NLL - const", lambda r: r["nll_vs_constant"], "{:+.2f}"),
@@ -67,7 +70,7 @@ def compare(old: dict, new: dict, every: bool = False) -> list[str]:
         cells, moved = [], miss_a != miss_b
         for _, value, fmt in FIGURES:
             sa, sb = _fmt(fmt, value(a)), _fmt(fmt, value(b))
-            moved |= sa != sb
+            moved |= sa != sb and "nan" not in (sa, sb)  # one run without that figure: no move
             cells.append(f"{sa} -> {sb}" if sa != sb else sb)
         if moved or every:
             missed = f"{', '.join(miss_a) or '-'} -> {', '.join(miss_b) or '-'}"
