@@ -9,8 +9,9 @@ import trimesh
 from bftaichi.errors import BftaichiError, DataError
 from bftaichi.io import write_mesh_ply
 from bftaichi.evaluation.metrics import (SampledSurface, format_table, geometry_metrics,
-                                        load_mesh, seen_points, spearman, surface_distances,
+                                        load_mesh, spearman, surface_distances,
                                         surface_distances_many, surface_sdf, uncertainty_metrics)
+from bftaichi.evaluation.seen import seen_points
 
 THRESHOLDS = (5, 10, 20, 50)
 

@@ -139,12 +139,13 @@ def synthetic_sigma(syn):
 
 def seen_geometry(cfg, out: Path) -> dict:
     """The two meshes' Chamfer distance on the part of the true surface the frames saw
-    (:func:`bftaichi.evaluation.metrics.seen_points`, with the noise the frames were rendered
+    (:func:`bftaichi.evaluation.seen.seen_points`, with the noise the frames were rendered
     with; the same samples as the run's metrics, ``SampledSurface.chamfer_split``): the CD of
     the rest is how each mesh closes what no frame saw."""
     import trimesh
 
-    from bftaichi.evaluation.metrics import SampledSurface, seen_points
+    from bftaichi.evaluation.metrics import SampledSurface
+    from bftaichi.evaluation.seen import seen_points
     from bftaichi.running.pipeline import load_gt_mesh, open_frames
 
     frames = open_frames(cfg)

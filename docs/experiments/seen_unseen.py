@@ -7,7 +7,7 @@ For a synthetic run folder (``bftaichi run`` of a synthetic scene, e.g. one case
 seed 0, ``cfg.eval``), and each true sample is *seen* when at least one of the run's frames
 observed it: it projects into the frame with a valid depth within ``--tol`` times the frame's
 axial noise (plus 1 mm) of its own camera depth, i.e. nothing hid it
-(:func:`bftaichi.evaluation.metrics.seen_points`, with the noise the frames were rendered
+(:func:`bftaichi.evaluation.seen.seen_points`, with the noise the frames were rendered
 with). Each predicted sample takes the class of the true sample nearest to it. Printed per mesh (``mesh.ply``,
 ``tsdf_mesh.ply``): the accuracy (predicted to true, mean) and, per class, the completeness
 (true to predicted, mean) and the class's part of the Chamfer distance, ``mean(d_pg^2) +
@@ -26,7 +26,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path[:0] = [str(ROOT), str(ROOT / "tools")]  # this checkout's bftaichi, tools/suite.py
+sys.path.insert(0, str(ROOT / "tools"))  # tools/suite.py
+sys.path.insert(0, str(ROOT))  # this checkout's bftaichi first
 
 
 def main(argv=None) -> int:
@@ -40,7 +41,8 @@ def main(argv=None) -> int:
     import trimesh
 
     import bftaichi as bf
-    from bftaichi.evaluation.metrics import SampledSurface, seen_points
+    from bftaichi.evaluation.metrics import SampledSurface
+    from bftaichi.evaluation.seen import seen_points
     from bftaichi.running.pipeline import load_gt_mesh, open_frames
     from suite import synthetic_sigma
 
