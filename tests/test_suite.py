@@ -14,21 +14,37 @@ MESHES = ROOT.parent / "shared" / "data" / "meshes"
 
 
 @pytest.fixture(scope="module")
-def rows(tmp_path_factory):
+def quick(tmp_path_factory):
+    """``(rows, runs)``: the quick suite's JSON rows and the folder its --keep left."""
     if not (MESHES / "suzanne.obj").exists():
         pytest.skip(f"development meshes not found in {MESHES}")
-    out = tmp_path_factory.mktemp("suite") / "quick.json"
+    tmp = tmp_path_factory.mktemp("suite")
+    out = tmp / "quick.json"
     proc = subprocess.run([sys.executable, str(ROOT / "tools" / "suite.py"), "--quick",
-                           "--json", str(out)], capture_output=True, text=True, timeout=900,
-                          cwd=ROOT)
+                           "--json", str(out), "--keep", str(tmp / "runs")],
+                          capture_output=True, text=True, timeout=900, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| case |" in proc.stdout and "targets met:" in proc.stdout
-    return json.loads(out.read_text())["rows"]
+    return json.loads(out.read_text())["rows"], tmp / "runs"
+
+
+@pytest.fixture(scope="module")
+def rows(quick):
+    return quick[0]
 
 
 def test_quick_suite_runs_every_case(rows):
     assert set(rows) == {f"{m}/{c}" for m in ("suzanne", "homer")
                          for c in ("sparse_far", "few_views")}
+
+
+def test_keep_leaves_each_case_s_run_folder(quick):
+    """``--keep DIR``: every case's outputs stay in DIR/<mesh>-<condition>, whole."""
+    rows, runs = quick
+    for name in rows:
+        folder = runs / name.replace("/", "-")
+        assert (folder / "report.json").is_file() and (folder / "mesh.ply").is_file(), name
+        assert (folder / "config.toml").is_file(), name
 
 
 def test_posterior_beats_its_bootstrap(rows):

@@ -36,6 +36,8 @@ Every figure of the README's suite table comes from this script::
     python tools/suite.py --meshes suzanne,homer --conditions sparse_far --set prior.curvature=1
     python tools/suite.py --json suite.json --markdown suite.md
     python tools/suite.py --heldout                        # 5 meshes it was not tuned on
+    python tools/suite.py --heldout --meshes disk --conditions few_views --keep runs
+    python docs/experiments/seen_unseen.py runs/disk-few_views   # its CD and F, seen or not
 
 Targets (issue 15), checked per case and counted at the end: coverage at 1 sigma in 60-76 %,
 at 2 sigma in 90-98 %, at 3 sigma >= 98 %; NLL below the constant's; posterior CD <= TSDF's
@@ -236,6 +238,10 @@ def main(argv=None) -> int:
                     help="override applied to every case (a model change to judge)")
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
     ap.add_argument("--markdown", type=Path, help="also write the table as Markdown here")
+    ap.add_argument("--keep", type=Path, metavar="DIR",
+                    help="keep each case's run folder in DIR/<mesh>-<condition> (and, with "
+                    "--heldout, its meshes in DIR/meshes), e.g. for "
+                    "docs/experiments/seen_unseen.py; default: a temporary folder")
     args = ap.parse_args(argv)
 
     import bftaichi as bf
@@ -245,7 +251,8 @@ def main(argv=None) -> int:
     if heldout is not None:
         from heldout_meshes import HELDOUT, write_heldout
 
-        args.data, args.no_sphere = write_heldout(Path(heldout.name)), True
+        args.data = write_heldout(args.keep if args.keep else Path(heldout.name))
+        args.no_sphere = True
         meshes = HELDOUT if args.meshes == ",".join(MESHES) else meshes
     conditions = QUICK[1] if args.quick else tuple(c for c in args.conditions.split(",") if c)
     for c in conditions:
@@ -267,8 +274,9 @@ def main(argv=None) -> int:
             if sets[:1] == ["--scene"]:
                 scene, sets = sets[1], []
             cfg = bf.load_config(scene, [*sets, *args.sets])
-            report = bf.run(cfg, Path(tmp) / f"case{i}", overwrite=True, progress=False)
-            rows[name] = dict(judge(report), **seen_geometry(cfg, Path(tmp) / f"case{i}"))
+            out = args.keep / name.replace("/", "-") if args.keep else Path(tmp) / f"case{i}"
+            report = bf.run(cfg, out, overwrite=True, progress=False)
+            rows[name] = dict(judge(report), **seen_geometry(cfg, out))
             r = rows[name]
             print(f"[{i + 1}/{len(cases)}] {name}: CD {r['cd_tsdf']:.3g} -> {r['cd_post']:.3g}, "
                   f"cov {100 * r['coverage@1sigma']:.0f}/{100 * r['coverage@2sigma']:.0f}/"

@@ -250,7 +250,7 @@ class SampledSurface:
         mask = np.asarray(mask, bool)
         if mask.shape != (self.n_samples,):
             raise BftaichiError(f"mask must have shape ({self.n_samples},), got {mask.shape}")
-        matched = self._match(pred)
+        matched = self.match(pred)
         if matched is None:
             return None
         d_pg, nearest, d_gp = matched
@@ -262,13 +262,13 @@ class SampledSurface:
     def distances(self, pred) -> tuple[np.ndarray, np.ndarray] | None:
         """``(d_pg, d_gp)`` of ``pred`` (:func:`surface_distances`), None when ``pred`` has no
         surface."""
-        matched = self._match(pred)
+        matched = self.match(pred)
         return None if matched is None else (matched[0], matched[2])
 
-    def _match(self, pred):
+    def match(self, pred):
         """``(d_pg, nearest, d_gp)``: ``pred``'s samples' distances to the ground truth's and
-        the index of the nearest, and the ground truth's samples' distances to ``pred``'s; None
-        when ``pred`` has no surface."""
+        the index of the nearest (into :meth:`points`), and the ground truth's samples'
+        distances to ``pred``'s; None when ``pred`` has no surface."""
         from scipy.spatial import cKDTree
         from trimesh.sample import sample_surface
 

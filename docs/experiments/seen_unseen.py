@@ -12,7 +12,8 @@ with). Each predicted sample takes the class of the true sample nearest to it. P
 ``tsdf_mesh.ply``): the accuracy (predicted to true, mean) and, per class, the completeness
 (true to predicted, mean) and the class's part of the Chamfer distance, ``mean(d_pg^2) +
 mean(d_gp^2)`` summed over that class's samples only (the two parts add up to the run's
-``chamfer_l2``: ``SampledSurface.chamfer_split``)::
+``chamfer_l2``: ``SampledSurface.chamfer_split``), and the F-score at ``--f-mm`` over all the
+true samples and over the seen ones (precision over the predicted samples nearest to them)::
 
     python docs/experiments/seen_unseen.py OUT_DIR [OUT_DIR ...]
 
@@ -25,6 +26,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))  # tools/suite.py
 sys.path.insert(0, str(ROOT))  # this checkout's bftaichi first
@@ -34,6 +37,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("runs", nargs="+", type=Path, help="run folders of synthetic scenes")
+    ap.add_argument("--f-mm", type=float, default=1.0,
+                    help="F-score threshold, mm (default 1); on the seen part a predicted sample "
+                    "counts with its nearest true sample's class")
     ap.add_argument("--tol", type=float, default=3.0,
                     help="depth agreement, in axial noise sigmas (plus 1 mm; default 3)")
     args = ap.parse_args(argv)
@@ -57,10 +63,17 @@ def main(argv=None) -> int:
         print(f"{run}: {len(frames)} frames, {100 * seen.mean():.1f} % of the true surface seen")
         for name in ("mesh.ply", "tsdf_mesh.ply"):
             pred = trimesh.load(run / name, process=False)
-            d_pg, d_gp = target.distances(pred)
+            d_pg, nearest, d_gp = target.match(pred)
             part_seen, part_unseen = target.chamfer_split(pred, seen)
             cd = part_seen + part_unseen
             print(f"  {name}: chamfer_l2 {cd:.3e}, accuracy {1000 * d_pg.mean():.3f} mm")
+            t = args.f_mm / 1000.0
+            for label, p_in, g_in in (("all", slice(None), slice(None)),
+                                      ("seen", seen[nearest], seen)):
+                prec, rec = np.mean(d_pg[p_in] < t), np.mean(d_gp[g_in] < t)
+                f = 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0
+                print(f"    F@{args.f_mm:g}mm, {label} true samples: {f:.3f} (precision {prec:.3f}, "
+                      f"recall {rec:.3f})")
             for label, g, part in (("seen", seen, part_seen), ("unseen", ~seen, part_unseen)):
                 comp = 1000 * d_gp[g].mean() if g.any() else float("nan")
                 print(f"    {label:6s}: completeness {comp:.3f} mm, CD part {part:.3e} "
