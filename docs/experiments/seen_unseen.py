@@ -8,14 +8,16 @@ seed 0, ``cfg.eval``), and each true sample is *seen* when at least one of the r
 observed it: it projects into the frame with a valid depth within ``--tol`` times the frame's
 axial noise (plus 1 mm) of its own camera depth, i.e. nothing hid it
 (:func:`bftaichi.evaluation.seen.seen_points`, with the noise the frames were rendered
-with). Each predicted sample takes the class of the true sample nearest to it. Printed per mesh (``mesh.ply``,
-``tsdf_mesh.ply``): the accuracy (predicted to true, mean) and, per class, the completeness
+with). Each predicted sample takes the class of the true sample nearest to it. Printed per
+mesh (``mesh.ply``, ``tsdf_mesh.ply``): the accuracy (predicted to true, mean) and, per class, the completeness
 (true to predicted, mean) and the class's part of the Chamfer distance, ``mean(d_pg^2) +
 mean(d_gp^2)`` summed over that class's samples only (the two parts add up to the run's
 ``chamfer_l2``: ``SampledSurface.chamfer_split``), and the F-score at ``--f-mm`` over all the
 true samples and over the seen ones (precision over the predicted samples nearest to them)::
 
     python docs/experiments/seen_unseen.py OUT_DIR [OUT_DIR ...]
+    python tools/suite.py --heldout --meshes disk --conditions few_views --keep runs
+    python docs/experiments/seen_unseen.py runs/disk-few_views
 
 The frames are rendered again from the run's ``config.toml`` (the same seed, the same noise).
 """
@@ -72,8 +74,8 @@ def main(argv=None) -> int:
                                       ("seen", seen[nearest], seen)):
                 prec, rec = np.mean(d_pg[p_in] < t), np.mean(d_gp[g_in] < t)
                 f = 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0
-                print(f"    F@{args.f_mm:g}mm, {label} true samples: {f:.3f} (precision {prec:.3f}, "
-                      f"recall {rec:.3f})")
+                print(f"    F@{args.f_mm:g}mm, {label} true samples: {f:.3f} "
+                      f"(precision {prec:.3f}, recall {rec:.3f})")
             for label, g, part in (("seen", seen, part_seen), ("unseen", ~seen, part_unseen)):
                 comp = 1000 * d_gp[g].mean() if g.any() else float("nan")
                 print(f"    {label:6s}: completeness {comp:.3f} mm, CD part {part:.3e} "
