@@ -216,6 +216,14 @@ class SyntheticConfig:
     """Seed (>= 0) of the noise and dropout; frame ``i`` draws from ``default_rng([seed, i])``, so a
     frame is the same whatever order frames are requested in."""
 
+    def depth_sigma_m(self, z):
+        """The depth noise the frames get at depth ``z`` (metres, float or array; the same
+        shape back): ``sigma_m`` (``gaussian``), ``depth_a_m + depth_b (z - depth_z0_m)^2``
+        (``kinect``), 0 (``none``)."""
+        if self.noise == "kinect":
+            return self.depth_a_m + self.depth_b * (z - self.depth_z0_m) ** 2
+        return (self.sigma_m if self.noise == "gaussian" else 0.0) + 0.0 * z
+
     def check(self) -> None:
         check_choice("synthetic.mesh_up", self.mesh_up, ("z", "y"))
         check_range("synthetic.mesh_scale", self.mesh_scale, 0.0, lo_open=True)

@@ -132,32 +132,36 @@ def judge(report: dict) -> dict:
     return row
 
 
-def synthetic_sigma(syn):
-    """The axial depth noise (metres, a function of depth) ``syn`` (``[synthetic]``) renders."""
-    if syn.noise == "kinect":
-        return lambda d: syn.depth_a_m + syn.depth_b * (d - syn.depth_z0_m) ** 2
-    return lambda d: (syn.sigma_m if syn.noise == "gaussian" else 0.0) + 0.0 * d
-
-
-def seen_geometry(cfg, out: Path) -> dict:
-    """The two meshes' Chamfer distance on the part of the true surface the frames saw
+def seen_samples(cfg) -> tuple:
+    """``(target, seen)``: the true mesh of the synthetic ``cfg`` sampled as its run's metrics
+    sample it (``SampledSurface``) and the samples some frame observed
     (:func:`bftaichi.evaluation.seen.seen_points`, with the noise the frames were rendered
-    with; the same samples as the run's metrics, ``SampledSurface.chamfer_split``): the CD of
-    the rest is how each mesh closes what no frame saw."""
-    import trimesh
-
+    with)."""
     from bftaichi.evaluation.metrics import SampledSurface
     from bftaichi.evaluation.seen import seen_points
     from bftaichi.running.pipeline import load_gt_mesh, open_frames
 
     frames = open_frames(cfg)
     target = SampledSurface(load_gt_mesh(cfg, frames), cfg.eval.n_samples, cfg.eval.seed)
-    seen = seen_points(target.points(), frames, synthetic_sigma(cfg.synthetic))
+    return target, seen_points(target.points(), frames, cfg.synthetic.depth_sigma_m)
+
+
+def seen_geometry(cfg, out: Path) -> dict:
+    """The two meshes' Chamfer distance on the part of the true surface the frames saw
+    (:func:`seen_samples`; ``SampledSurface.chamfer_split``, the same samples as the run's
+    metrics): the CD of the rest is how each mesh closes what no frame saw."""
+    import trimesh
+
+    target, seen = seen_samples(cfg)
     row = {"seen_share": float(seen.mean())}
     for key, name in (("tsdf", "tsdf_mesh.ply"), ("post", "mesh.ply")):
         split = target.chamfer_split(trimesh.load(str(out / name), process=False), seen)
         row[f"cd_seen_{key}"] = split[0] if split is not None else math.inf
     return row
+
+
+def _geometric_mean(x: list) -> float:
+    return math.exp(sum(math.log(v) for v in x) / len(x)) if x else float("nan")
 
 
 def targets(name: str, row: dict) -> dict:
@@ -205,18 +209,17 @@ def summary(rows: dict) -> str:
             counts.setdefault(k, [0, 0])
             counts[k][0] += int(ok)
             counts[k][1] += 1
-    ratios = [r["cd_post"] / r["cd_tsdf"] for r in rows.values()]
-    gm = math.exp(sum(math.log(x) for x in ratios) / len(ratios)) if ratios else float("nan")
+    gm = _geometric_mean([r["cd_post"] / r["cd_tsdf"] for r in rows.values()])
     parts = [f"{k} {a}/{b}" for k, (a, b) in counts.items()]
     line = f"targets met: {', '.join(parts)}; geometric mean CD ratio {gm:.3f}"
     seen = [r["cd_seen_post"] / r["cd_seen_tsdf"] for r in rows.values() if "cd_seen_post" in r]
     if seen:
         sparse = [r["cd_seen_post"] / r["cd_seen_tsdf"] for n, r in rows.items()
                   if "cd_seen_post" in r and n.split("/")[-1] in PRIOR_PAYS]
-        gm_seen = math.exp(sum(math.log(x) for x in seen) / len(seen))
         line += (f"\non the surface the frames saw: CD <= TSDF on {sum(x <= 1 for x in seen)}/"
                  f"{len(seen)}, <= 0.8x on {sum(x <= 0.8 for x in sparse)}/{len(sparse)} of the "
-                 f"sparse, few-view and noisy cases; geometric mean CD ratio {gm_seen:.3f}")
+                 f"sparse, few-view and noisy cases; geometric mean CD ratio "
+                 f"{_geometric_mean(seen):.3f}")
     return line
 
 

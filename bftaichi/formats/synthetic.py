@@ -448,8 +448,7 @@ def add_noise(depth_m: np.ndarray, cfg: SyntheticConfig, rng: np.random.Generato
     if cfg.noise == "gaussian":
         z = z + cfg.sigma_m * gauss
     elif cfg.noise == "kinect":
-        sigma = cfg.depth_a_m + cfg.depth_b * (z - cfg.depth_z0_m) ** 2
-        z = z + sigma * gauss
+        z = z + cfg.depth_sigma_m(z) * gauss
     elif cfg.noise != "none":
         raise ConfigError(f"synthetic.noise = {cfg.noise!r} is not one of none, gaussian, kinect")
     if cfg.quantization_m > 0:

@@ -105,8 +105,8 @@ class ObservationConfig:
     one error of its extra noise spans (:func:`.sharednoise.frames_sharing_noise`; 1 where it
     finds no significant sharing, as with independent noise), and the data's part of the
     variance counts those frames as one (:func:`.sharednoise.shared_noise_factor`); the MAP
-    does not change (unless ``shared_in_map``). Set false for frames in no particular order. report.json:
-    ``solver.observations.noise_fit.frames_sharing_noise``."""
+    does not change (unless ``shared_in_map``). Set false for frames in no particular order.
+    report.json: ``solver.observations.noise_fit.frames_sharing_noise``."""
 
     shared_in_map: bool = False
     """Count the frames' shared extra noise in the MAP as well (with ``in_time_order``): each

@@ -5,15 +5,15 @@ the part none saw (a diagnosis for issue 15's geometry targets).
 For a synthetic run folder (``bftaichi run`` of a synthetic scene, e.g. one case of
 ``tools/suite.py``), the true mesh is sampled as ``geometry_metrics`` samples it (200k points,
 seed 0, ``cfg.eval``), and each true sample is *seen* when at least one of the run's frames
-observed it: it projects into the frame with a valid depth within ``--tol`` times the frame's
-axial noise (plus 1 mm) of its own camera depth, i.e. nothing hid it
-(:func:`bftaichi.evaluation.seen.seen_points`, with the noise the frames were rendered
-with). Each predicted sample takes the class of the true sample nearest to it. Printed per
-mesh (``mesh.ply``, ``tsdf_mesh.ply``): the accuracy (predicted to true, mean) and, per class, the completeness
-(true to predicted, mean) and the class's part of the Chamfer distance, ``mean(d_pg^2) +
-mean(d_gp^2)`` summed over that class's samples only (the two parts add up to the run's
-``chamfer_l2``: ``SampledSurface.chamfer_split``), and the F-score at ``--f-mm`` over all the
-true samples and over the seen ones (precision over the predicted samples nearest to them)::
+observed it: it projects into the frame with a valid depth within 3 times the frame's axial
+noise (plus 1 mm) of its own camera depth, i.e. nothing hid it (``seen_samples`` of
+tools/suite.py, as the suite splits it). Each predicted sample takes the class of the true
+sample nearest to it. Printed per mesh (``mesh.ply``, ``tsdf_mesh.ply``): the accuracy
+(predicted to true, mean) and, per class, the completeness (true to predicted, mean) and the
+class's part of the Chamfer distance, ``mean(d_pg^2) + mean(d_gp^2)`` summed over that class's
+samples only (the two parts add up to the run's ``chamfer_l2``:
+``SampledSurface.chamfer_split``), and the F-score at ``--f-mm`` over all the true samples and
+over the seen ones (precision over the predicted samples nearest to them)::
 
     python docs/experiments/seen_unseen.py OUT_DIR [OUT_DIR ...]
     python tools/suite.py --heldout --meshes disk --conditions few_views --keep runs
@@ -42,27 +42,19 @@ def main(argv=None) -> int:
     ap.add_argument("--f-mm", type=float, default=1.0,
                     help="F-score threshold, mm (default 1); on the seen part a predicted sample "
                     "counts with its nearest true sample's class")
-    ap.add_argument("--tol", type=float, default=3.0,
-                    help="depth agreement, in axial noise sigmas (plus 1 mm; default 3)")
     args = ap.parse_args(argv)
 
     import trimesh
 
     import bftaichi as bf
-    from bftaichi.evaluation.metrics import SampledSurface
-    from bftaichi.evaluation.seen import seen_points
-    from bftaichi.running.pipeline import load_gt_mesh, open_frames
-    from suite import synthetic_sigma
+    from suite import seen_samples
 
     for run in args.runs:
         cfg = bf.load_config(run / "config.toml", [])
-        frames = open_frames(cfg)
-        gt = load_gt_mesh(cfg, frames)
-        if gt is None:
-            raise SystemExit(f"seen_unseen: {run} has no ground-truth mesh")
-        target = SampledSurface(gt, cfg.eval.n_samples, cfg.eval.seed)  # as the run's metrics
-        seen = seen_points(target.points(), frames, synthetic_sigma(cfg.synthetic), args.tol)
-        print(f"{run}: {len(frames)} frames, {100 * seen.mean():.1f} % of the true surface seen")
+        if cfg.scene.source != "synthetic":
+            raise SystemExit(f"seen_unseen: {run} is not a synthetic scene (no true mesh)")
+        target, seen = seen_samples(cfg)  # as the suite splits it
+        print(f"{run}: {100 * seen.mean():.1f} % of the true surface seen")
         for name in ("mesh.ply", "tsdf_mesh.ply"):
             pred = trimesh.load(run / name, process=False)
             d_pg, nearest, d_gp = target.match(pred)
