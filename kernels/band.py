@@ -47,7 +47,7 @@ import taichi as ti
 
 from .funcs import block_row
 from .layout import (BLOCK, BLOCK_VOXELS, CENTRE, KEY_BIAS, block_key_np, block_key_steps,
-                     decode_keys, stencil_offset)
+                     decode_keys)
 
 MAX_DILATION = BLOCK - 1  # candidate blocks reach 8 voxels past a core voxel; the fill reads d+1
 #: |ijk| bound: the block of ijk and its neighbouring blocks stay inside lookup's key range.
@@ -56,10 +56,12 @@ MAX_ABS_IJK = (KEY_BIAS - 2) * BLOCK
 # -- kernels ---------------------------------------------------------------------------------
 
 @ti.func
-def _neighbour_cell(block_nbr: ti.template(), c: ti.i32, o: ti.template()) -> ti.i32:
-    """Cell of the voxel at stencil offset ``o`` (compile-time) from cell ``c``, or -1 if its
-    block is not a candidate block."""
-    di, dj, dk = ti.static(stencil_offset(o))
+def _neighbour_cell(block_nbr: ti.template(), c: ti.i32, o: ti.i32) -> ti.i32:
+    """Cell of the voxel at stencil offset ``o`` from cell ``c``, or -1 if its block is not a
+    candidate block. ``o`` is a run-time value: the kernels loop over the 26 offsets at run
+    time, which keeps their code (and the front end and code generation of every process's
+    first call) a 26th of the unrolled size."""
+    di, dj, dk = o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1
     slot = c >> 9
     t = c & (BLOCK_VOXELS - 1)
     a = (t >> 6) + di
@@ -110,8 +112,8 @@ def _dilate(level: ti.types.ndarray(dtype=ti.i8, ndim=1),
     one cell store the same value r + 1."""
     for c in range(level.shape[0]):
         if ti.cast(level[c], ti.i32) == r:
-            for o in ti.static(range(27)):
-                if ti.static(o != CENTRE):
+            for o in range(27):
+                if o != CENTRE:
                     t = _neighbour_cell(block_nbr, c, o)
                     if t >= 0:
                         if level[t] == 0:
@@ -133,8 +135,8 @@ def _fill_unobserved(level: ti.types.ndarray(dtype=ti.i8, ndim=1),
         if ti.cast(level[c], ti.i32) == r + 1 and known[c] == 0:
             total = ti.f64(0.0)
             count = 0
-            for o in ti.static(range(27)):
-                if ti.static(o != CENTRE):
+            for o in range(27):
+                if o != CENTRE:
                     t = _neighbour_cell(block_nbr, c, o)
                     if t >= 0:
                         kt = ti.cast(known[t], ti.i32)
@@ -164,8 +166,8 @@ def _gather_band(band_cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
     and core flag. Deterministic (gather: row i is written by one thread)."""
     for i in range(band_cell.shape[0]):
         c = band_cell[i]
-        for o in ti.static(range(27)):
-            if ti.static(o == CENTRE):
+        for o in range(27):
+            if o == CENTRE:
                 nbr[i, o] = i
             else:
                 t = _neighbour_cell(block_nbr, c, o)

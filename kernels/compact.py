@@ -45,17 +45,22 @@ def _row_columns(nbr: _NDA(dtype=ti.i32, ndim=2), nbr2: _NDA(dtype=ti.i32, ndim=
     ``j - i - dk`` of its present neighbours j (the smallest; ``gap`` where they differ) and
     whether it has one; per far offset a (``has_far``) its ``j - i``. See _compact_layout."""
     for i in range(nbr.shape[0]):
+        # run-time loops over the offsets (integers: the same values as unrolled, for a
+        # fraction of the code every process's first call builds)
         b = ti.u32(0)
-        for o in ti.static(range(STENCIL)):
-            if ti.static(o != CENTRE):
-                b |= ti.cast(nbr[i, o] >= 0, ti.u32) << ti.static(_BIT[o])
+        for o in range(STENCIL):
+            if o != CENTRE:
+                bit = o if o < CENTRE else o - 1  # _BIT[o]
+                b |= ti.cast(nbr[i, o] >= 0, ti.u32) << ti.cast(bit, ti.u32)
         g = 0
-        for c in ti.static(range(_N_NEAR)):
+        for c in range(_N_NEAR):
+            k = c if c < 4 else c + 1  # _COLUMNS[c] = (k // 3 - 1, k % 3 - 1), (0, 0) skipped
+            base = (k // 3) * 9 + (k % 3) * 3  # _COLUMN_OFFSETS[c][t] = base + t
             low, high, any_ = _BIG, -_BIG, 0
-            for t in ti.static(range(3)):
-                j = nbr[i, ti.static(_COLUMN_OFFSETS[c][t])]
+            for t in range(3):
+                j = nbr[i, base + t]
                 if j >= 0:
-                    cand = j - i - ti.static(t - 1)
+                    cand = j - i - (t - 1)
                     low, high, any_ = ti.min(low, cand), ti.max(high, cand), 1
             defined[c, i] = ti.cast(any_, ti.i8)
             value[c, i] = low if any_ else 0

@@ -59,8 +59,8 @@ def _add_membrane_prior(S: ti.types.ndarray(dtype=ti.f32, ndim=2),
     for i in range(nbr.shape[0]):
         diag = eps
         boundary = False
-        for o in ti.static(range(27)):
-            if ti.static(o != CENTRE):
+        for o in range(27):  # run time, in offset order (the float64 sum's order)
+            if o != CENTRE:
                 if w27[o] > 0:
                     c = lam * w27[o]  # lam w_ij, the same number for o and 26 - o
                     if nbr[i, o] >= 0:
