@@ -49,6 +49,10 @@ def test_bench_startup_reports_cold_and_warm():
     assert "first calls, BFTAICHI_TAICHI_POSITIONS unset: cold" in out
     rows = [line for line in out.splitlines() if line.startswith("| kernels.")]
     assert len(rows) == 4, out
+    # each row also gives the front end's part of the warm first call: a number, at most it
+    for row in rows:
+        cold, warm, front = (float(x) for x in row.strip("|").split("|")[1:4])
+        assert 0 <= front <= warm + 0.005, row
 
 
 @pytest.mark.skipif(not (SHARED / "rgbd" / "7scenes-redkitchen").is_dir(),
