@@ -47,7 +47,7 @@ import taichi as ti
 
 from .funcs import block_row
 from .layout import (BLOCK, BLOCK_VOXELS, CENTRE, KEY_BIAS, block_key_np, block_key_steps,
-                     decode_keys)
+                     decode_keys, stencil_offset)
 
 MAX_DILATION = BLOCK - 1  # candidate blocks reach 8 voxels past a core voxel; the fill reads d+1
 #: |ijk| bound: the block of ijk and its neighbouring blocks stay inside lookup's key range.
@@ -61,7 +61,7 @@ def _neighbour_cell(block_nbr: ti.template(), c: ti.i32, o: ti.i32) -> ti.i32:
     candidate block. ``o`` is a run-time value: the kernels loop over the 26 offsets at run
     time, which keeps their code (and the front end and code generation of every process's
     first call) a 26th of the unrolled size."""
-    di, dj, dk = o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1
+    di, dj, dk = stencil_offset(o)  # layout's formula, here on a run-time offset
     slot = c >> 9
     t = c & (BLOCK_VOXELS - 1)
     a = (t >> 6) + di

@@ -13,7 +13,7 @@ import taichi as ti
 from .funcs import (block_is_planar, block_mean_depth, block_row, corner, floor_i32,
                     trilinear)
 from .fixedpoint import fixed_point, part_sum, saturated_entries
-from .layout import BLOCK, CENTRE
+from .layout import BLOCK, CENTRE, stencil_offset
 from .lookup import SAMPLE_ACCEPTED, SAMPLE_GATED, band_index, look_up_sample
 from .stencil import first_chunk, virtual_iterations
 
@@ -477,14 +477,14 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
         n_sat = saturated_entries(S_acc, h_acc, i)
         if n_sat > 0:
             ti.atomic_add(saturated[0], n_sat)
-        for o in range(CENTRE, 27):  # run time: unrolled, a 14th of the first call's work
+        for o in range(CENTRE, 27):  # a run-time loop: unrolled, it was 14 copies to build
             S[i, o] = ti.cast(ti.cast(part_sum(S_acc, i, o - CENTRE), ti.f64) * inv_scale, ti.f32)
         v = ti.Vector([ijk[i, 0], ijk[i, 1], ijk[i, 2]])
         b = ti.Vector([v[0] // BLOCK, v[1] // BLOCK, v[2] // BLOCK])
         row = block_row(block_keys, b[0], b[1], b[2])  # >= 0: voxel i is in the band
         loc = v - b * BLOCK
         for o in range(CENTRE):
-            d = ti.Vector([o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1])
+            d = ti.Vector(stencil_offset(o))
             lc = loc + d
             j = -1
             if (lc >= 0).all() and (lc < BLOCK).all():  # neighbour in voxel i's block

@@ -241,16 +241,19 @@ class SampledSurface:
         self.index()
         return self._points
 
-    def chamfer_split(self, pred, mask: np.ndarray) -> tuple[float, float] | None:
+    def chamfer_split(self, pred, mask: np.ndarray, *,
+                      matched=None) -> tuple[float, float] | None:
         """``chamfer_l2`` of ``pred`` split by the ground-truth samples' ``mask`` (n_samples,)
         bool: ``(part where mask, part elsewhere)``, each ``(sum d_pg^2 + sum d_gp^2) /
         n_samples`` over its samples, a predicted sample counting with the class of the
         ground-truth sample nearest to it; the two add up to :func:`geometry_metrics`'
-        ``chamfer_l2`` (the same samples). None when ``pred`` has no surface."""
+        ``chamfer_l2`` (the same samples). ``matched``: :meth:`match` of ``pred`` when the
+        caller already has it. None when ``pred`` has no surface."""
         mask = np.asarray(mask, bool)
         if mask.shape != (self.n_samples,):
             raise BftaichiError(f"mask must have shape ({self.n_samples},), got {mask.shape}")
-        matched = self.match(pred)
+        if matched is None:
+            matched = self.match(pred)
         if matched is None:
             return None
         d_pg, nearest, d_gp = matched

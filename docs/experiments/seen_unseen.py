@@ -57,8 +57,9 @@ def main(argv=None) -> int:
         print(f"{run}: {100 * seen.mean():.1f} % of the true surface seen")
         for name in ("mesh.ply", "tsdf_mesh.ply"):
             pred = trimesh.load(run / name, process=False)
-            d_pg, nearest, d_gp = target.match(pred)
-            part_seen, part_unseen = target.chamfer_split(pred, seen)
+            matched = target.match(pred)
+            d_pg, nearest, d_gp = matched
+            part_seen, part_unseen = target.chamfer_split(pred, seen, matched=matched)
             cd = part_seen + part_unseen
             print(f"  {name}: chamfer_l2 {cd:.3e}, accuracy {1000 * d_pg.mean():.3f} mm")
             t = args.f_mm / 1000.0
