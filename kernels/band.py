@@ -45,9 +45,9 @@ dilation's concurrent writes all store the same value into a cell no thread of t
 import numpy as np
 import taichi as ti
 
-from .funcs import block_row
+from .funcs import block_row, offset_of
 from .layout import (BLOCK, BLOCK_VOXELS, CENTRE, KEY_BIAS, block_key_np, block_key_steps,
-                     decode_keys, stencil_offset)
+                     decode_keys)
 
 MAX_DILATION = BLOCK - 1  # candidate blocks reach 8 voxels past a core voxel; the fill reads d+1
 #: |ijk| bound: the block of ijk and its neighbouring blocks stay inside lookup's key range.
@@ -61,7 +61,7 @@ def _neighbour_cell(block_nbr: ti.template(), c: ti.i32, o: ti.i32) -> ti.i32:
     candidate block. ``o`` is a run-time value: the kernels loop over the 26 offsets at run
     time, which keeps their code (and the front end and code generation of every process's
     first call) a 26th of the unrolled size."""
-    di, dj, dk = stencil_offset(o)  # layout's formula, here on a run-time offset
+    di, dj, dk = offset_of(o)
     slot = c >> 9
     t = c & (BLOCK_VOXELS - 1)
     a = (t >> 6) + di

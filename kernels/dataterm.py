@@ -10,10 +10,10 @@ one thread.
 
 import taichi as ti
 
-from .funcs import (block_is_planar, block_mean_depth, block_row, corner, floor_i32,
+from .funcs import (block_is_planar, block_mean_depth, block_row, corner, floor_i32, offset_of,
                     trilinear)
 from .fixedpoint import fixed_point, part_sum, saturated_entries
-from .layout import BLOCK, CENTRE, stencil_offset
+from .layout import BLOCK, CENTRE
 from .lookup import SAMPLE_ACCEPTED, SAMPLE_GATED, band_index, look_up_sample
 from .stencil import first_chunk, virtual_iterations
 
@@ -484,7 +484,7 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
         row = block_row(block_keys, b[0], b[1], b[2])  # >= 0: voxel i is in the band
         loc = v - b * BLOCK
         for o in range(CENTRE):
-            d = ti.Vector(stencil_offset(o))
+            d = offset_of(o)
             lc = loc + d
             j = -1
             if (lc >= 0).all() and (lc < BLOCK).all():  # neighbour in voxel i's block

@@ -1,6 +1,8 @@
 """Per-voxel ``@ti.func`` helpers shared by the kernels of several modules (written once).
 
 * :func:`floor_i32` -- floor without a libm call;
+* :func:`offset_of` -- the Taichi side of :func:`kernels.layout.stencil_offset`, for a
+  run-time stencil offset;
 * :func:`block_key`, :func:`find_block`, :func:`block_row` -- the Taichi side of the block keys
   of :mod:`kernels.layout` and the binary search over sorted keys (the band lookup of
   :mod:`kernels.lookup`);
@@ -26,6 +28,14 @@ def floor_i32(x):
     truncation went up (negative non-integers)."""
     t = ti.cast(x, ti.i32)
     return t - ti.cast(t > x, ti.i32)  # the comparison promotes t to x's float type
+
+
+@ti.func
+def offset_of(o):
+    """Voxel offset (di, dj, dk) of stencil offset ``o``, a run-time value, as an int32
+    vector: :func:`kernels.layout.stencil_offset` in Taichi (a Python function called in a
+    kernel would run at compile time, which Taichi warns of on every process's first call)."""
+    return ti.Vector([o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1], ti.i32)
 
 
 @ti.func

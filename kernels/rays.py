@@ -58,8 +58,6 @@ def clip_to_box(o, m, lo, hi, z_in: ti.f64, z_out: ti.f64):
 
 # -- Python side: validation at the boundary --------------------------------------------------
 
-# -- Python side: validation at the boundary --------------------------------------------------
-
 def check_positive(name: str, value) -> float:
     value = float(value)
     if not (math.isfinite(value) and value > 0):
