@@ -57,17 +57,17 @@ def posterior_system(recon):
     return band, add_prior(S, h, band, cfg.prior, cfg.band.stencil, vs)
 
 
-def pulled_inside(S, nbr, far, mean, idx, trunc_m, voxel_size_m):
-    """A strong pull of voxels ``idx`` to ``-trunc_m`` (1000 per voxel^2, as the samples that
-    assert "inside" across an occlusion edge or behind a thin part pull them), added to the
-    stencil ``S`` in place: returns ``h`` with the MAP ``mean`` of the unpulled system (``Q
-    mean = h`` there) and the pulled MAP ``bent``."""
+def pulled_inside(S, nbr, far, mean, idx, trunc_m, voxel_size_m, strength=1000.0):
+    """A strong pull of voxels ``idx`` to ``-trunc_m`` (``strength`` per voxel^2, as the
+    samples that assert "inside" across an occlusion edge or behind a thin part pull them),
+    added to the stencil ``S`` in place: returns ``h`` with the MAP ``mean`` of the unpulled
+    system (``Q mean = h`` there) and the pulled MAP ``bent``."""
     import numpy as np
     from kernels.pcg import pcg
     from kernels.stencil import apply_Q
 
     h = apply_Q(S, nbr, mean, far=far).astype(np.float32)
-    c = np.float32(1000.0 / voxel_size_m ** 2)
+    c = np.float32(strength / voxel_size_m ** 2)
     S[idx, 13] += c
     h[idx] += c * np.float32(-trunc_m)
     bent, _ = pcg(S, nbr, h, mean, tol=1e-8, maxiter=2000, far=far)

@@ -205,6 +205,39 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     np.testing.assert_allclose(fixed[away], post.mean[away], atol=0.05 * vs)
 
 
+def test_free_space_anchors_outweighed_by_the_data_still_settle_in_a_few_passes():
+    """A pull 100x the anchors' strength (``prior.free``) on free voxels: raising an anchor's
+    target alone moves its voxel by ~1 % of the raise a pass, and 64 passes left surfaces in
+    free space; the anchors that need a second raise stiffen, and the set settles."""
+    from bftaichi.running.pipeline import open_frames
+    from bftaichi.stages.prior import System
+    from bftaichi.stages.solve import STIFFEN, solve_map
+    from conftest import posterior_system, pulled_inside, solved
+
+    cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false",
+                             "observation.aggregate=0", "prior.curvature=0.1",
+                             "prior.curvature_scale=0"])
+    recon, post = solved(cfg, open_frames(cfg), variance=False)
+    band, system = posterior_system(recon)
+    S, nbr, far = system.S.copy(), system.nbr, system.far
+    vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
+    free = np.flatnonzero(band.observed & (band.tsdf > tau))
+    hit = free[:: len(free) // 12][:12]
+    h, bent = pulled_inside(S, nbr, far, post.mean, hit, tau, vs, strength=100 * 1000.0)
+    assert (bent[hit] < -0.5 * tau).sum() >= 6  # deep false surfaces in free space
+    cfg.solver.tol = 1e-8
+    S0, h0 = S.copy(), h.copy()
+    fixed, info = solve_map(System(S=S, nbr=nbr, h=h, far=far), bent, cfg.solver, band,
+                            trunc_m=tau, voxel_size_m=vs, free=1000.0,
+                            bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m)
+    stats = info["free_space"]
+    assert info["converged"] and stats["settled"] and stats["passes"] <= 32, stats
+    assert (fixed[hit] > 0).all()
+    # the anchors are taken out again: the system is the data's and the prior's
+    np.testing.assert_allclose(S, S0, rtol=1e-6 * STIFFEN, atol=0)
+    np.testing.assert_allclose(h, h0, rtol=0, atol=1e-4 * np.abs(h0).max())
+
+
 def test_free_space_passes_solved_locally_settle_where_whole_solves_settle(monkeypatch):
     """solve_map's passes after the robust prior's reweighting solve only around their new
     anchors (LOCAL_RINGS rings), then the settled mean is solved whole and checked again:
