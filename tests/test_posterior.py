@@ -161,18 +161,19 @@ def test_noise_fit_finds_the_noise_the_depth_model_misses(tmp_path):
     assert off["solver"]["observations"]["noise_fit"]["sigma_extra_m"] == 0.0
 
 
-def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
-    """PriorConfig.free: data that drags voxels the TSDF saw as free below zero (as samples
-    straddling an occlusion edge do) is overruled there, and only there."""
+def _free_voxels_pulled_inside(strength: float):
+    """The sphere's posterior with a pull of ``strength`` per voxel^2 to ``-tau`` on 12 of the
+    voxels its TSDF saw as free (straddling samples), and the free-space constraint's solve of
+    it (``prior.free`` = 1000), as a namespace: ``band``, ``post``, ``free``, ``hit``, the bent
+    MAP ``bent`` the solve started from, ``S0, h0`` (the bent system) and ``S, h`` (as the
+    solve left them), ``fixed``, ``info``, ``vs``, ``tau``."""
+    from types import SimpleNamespace
+
     from bftaichi.running.pipeline import open_frames
     from bftaichi.stages.prior import System
     from bftaichi.stages.solve import solve_map
     from conftest import posterior_system, pulled_inside, solved
 
-    # every pixel on its own (observation.aggregate=0); even so 4 of the 7071 free voxels,
-    # out at the band's edge and seen by one frame, end below half a voxel without the
-    # constraint (the constraint anchors them too, so the comparison far from the bent
-    # voxels leaves them out)
     # the linear (Gaussian) curvature prior, which conftest.posterior_system rebuilds
     cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false",
                              "observation.aggregate=0", "prior.curvature=0.1",
@@ -182,17 +183,31 @@ def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
     S, nbr, far = system.S.copy(), system.nbr, system.far
     vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
     free = np.flatnonzero(band.observed & (band.tsdf > tau))
-    low = free[post.mean[free] <= 0.5 * vs]
-    assert len(free) > 50 and len(low) <= 0.001 * len(free)  # consistent so far
-    assert (band.weight[low] <= 1).all()
-    # straddling samples: a strong pull to -tau on a few free voxels
     hit = free[:: len(free) // 12][:12]
-    h, bent = pulled_inside(S, nbr, far, post.mean, hit, tau, vs)
-    assert (bent[hit] < 0).sum() >= 6  # false surfaces in free space
+    h, bent = pulled_inside(S, nbr, far, post.mean, hit, tau, vs, strength=strength)
     cfg.solver.tol = 1e-8
+    S0, h0 = S.copy(), h.copy()
     fixed, info = solve_map(System(S=S, nbr=nbr, h=h, far=far), bent, cfg.solver, band,
                             trunc_m=tau, voxel_size_m=vs, free=1000.0,
                             bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m)
+    return SimpleNamespace(band=band, post=post, free=free, hit=hit, bent=bent, S0=S0, h0=h0,
+                           S=S, h=h, fixed=fixed, info=info, vs=vs, tau=tau)
+
+
+def test_free_space_constraint_lifts_voxels_the_bootstrap_saw_as_free():
+    """PriorConfig.free: data that drags voxels the TSDF saw as free below zero (as samples
+    straddling an occlusion edge do) is overruled there, and only there."""
+    run = _free_voxels_pulled_inside(1000.0)
+    band, post, free, hit, bent, fixed, info, vs = (run.band, run.post, run.free, run.hit,
+                                                    run.bent, run.fixed, run.info, run.vs)
+    # every pixel on its own (observation.aggregate=0); even so 4 of the 7071 free voxels,
+    # out at the band's edge and seen by one frame, end below half a voxel without the
+    # constraint (the constraint anchors them too, so the comparison far from the bent
+    # voxels leaves them out)
+    low = free[post.mean[free] <= 0.5 * vs]
+    assert len(free) > 50 and len(low) <= 0.001 * len(free)  # consistent so far
+    assert (band.weight[low] <= 1).all()
+    assert (bent[hit] < 0).sum() >= 6  # false surfaces in free space
     stats = info["free_space"]
     assert info["converged"] and stats["passes"] >= 1 and stats["settled"]
     assert stats["anchored"] >= (bent[hit] < 0.5 * vs).sum()
@@ -209,33 +224,16 @@ def test_free_space_anchors_outweighed_by_the_data_still_settle_in_a_few_passes(
     """A pull 100x the anchors' strength (``prior.free``) on free voxels: raising an anchor's
     target alone moves its voxel by ~1 % of the raise a pass, and 64 passes left surfaces in
     free space; the anchors that need a second raise stiffen, and the set settles."""
-    from bftaichi.running.pipeline import open_frames
-    from bftaichi.stages.prior import System
-    from bftaichi.stages.solve import STIFFEN, solve_map
-    from conftest import posterior_system, pulled_inside, solved
+    from bftaichi.stages.solve import STIFFEN
 
-    cfg = _sphere_cfg(0.03, ["prior.free=0", "observation.fit_noise=false",
-                             "observation.aggregate=0", "prior.curvature=0.1",
-                             "prior.curvature_scale=0"])
-    recon, post = solved(cfg, open_frames(cfg), variance=False)
-    band, system = posterior_system(recon)
-    S, nbr, far = system.S.copy(), system.nbr, system.far
-    vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
-    free = np.flatnonzero(band.observed & (band.tsdf > tau))
-    hit = free[:: len(free) // 12][:12]
-    h, bent = pulled_inside(S, nbr, far, post.mean, hit, tau, vs, strength=100 * 1000.0)
-    assert (bent[hit] < -0.5 * tau).sum() >= 6  # deep false surfaces in free space
-    cfg.solver.tol = 1e-8
-    S0, h0 = S.copy(), h.copy()
-    fixed, info = solve_map(System(S=S, nbr=nbr, h=h, far=far), bent, cfg.solver, band,
-                            trunc_m=tau, voxel_size_m=vs, free=1000.0,
-                            bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m)
-    stats = info["free_space"]
-    assert info["converged"] and stats["settled"] and stats["passes"] <= 32, stats
-    assert (fixed[hit] > 0).all()
+    run = _free_voxels_pulled_inside(100 * 1000.0)
+    assert (run.bent[run.hit] < -0.5 * run.tau).sum() >= 6  # deep false surfaces in free space
+    stats = run.info["free_space"]
+    assert run.info["converged"] and stats["settled"] and stats["passes"] <= 32, stats
+    assert (run.fixed[run.hit] > 0).all()
     # the anchors are taken out again: the system is the data's and the prior's
-    np.testing.assert_allclose(S, S0, rtol=1e-6 * STIFFEN, atol=0)
-    np.testing.assert_allclose(h, h0, rtol=0, atol=1e-4 * np.abs(h0).max())
+    np.testing.assert_allclose(run.S, run.S0, rtol=1e-6 * STIFFEN, atol=0)
+    np.testing.assert_allclose(run.h, run.h0, rtol=0, atol=1e-4 * np.abs(run.h0).max())
 
 
 def test_free_space_passes_solved_locally_settle_where_whole_solves_settle(monkeypatch):
