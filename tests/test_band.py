@@ -230,3 +230,23 @@ def test_stencil_offsets():
         np.testing.assert_allclose(weights, 1.0 / sq)
     with pytest.raises(ValueError):
         stencil_offsets(8)
+
+
+def test_the_kernels_offset_of_is_the_layouts_stencil_offset():
+    """kernels.funcs.offset_of (a run-time offset inside a kernel) gives the (di, dj, dk) of
+    kernels.layout.stencil_offset for all 27 offsets."""
+    import taichi as ti
+
+    from kernels.funcs import offset_of
+    from kernels.layout import OFFSETS
+
+    @ti.kernel
+    def table(out: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+        for o in range(out.shape[0]):
+            d = offset_of(o)
+            for c in ti.static(range(3)):
+                out[o, c] = d[c]
+
+    out = np.zeros((27, 3), np.int32)
+    table(out)
+    np.testing.assert_array_equal(out, OFFSETS)
