@@ -19,9 +19,25 @@ _KERNELS = {}
 
 #: Near columns (di, dj) of the compact layout, the voxel's own column (0, 0) excluded.
 _COLUMNS = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]
-_COLUMN_OFFSETS = [[(di + 1) * 9 + (dj + 1) * 3 + dk + 1 for dk in (-1, 0, 1)]
-                   for di, dj in _COLUMNS]
-_BIT = [o if o < CENTRE else o - 1 for o in range(STENCIL)]  # presence bit of offset o
+
+
+@ti.pyfunc
+def _column_offset(c, t):
+    """Stencil offset of voxel ``t`` (``dk = t - 1``) of near column ``c`` (``_COLUMNS[c]``:
+    the 3 x 3 columns in order, the centre's, k = 4, skipped); a kernel may pass run-time
+    values."""
+    k = c if c < 4 else c + 1
+    return (k // 3) * 9 + (k % 3) * 3 + t
+
+
+@ti.pyfunc
+def _bit(o):
+    """Presence bit of stencil offset ``o`` (the offsets in order, the centre skipped)."""
+    return o if o < CENTRE else o - 1
+
+
+_COLUMN_OFFSETS = [[_column_offset(c, t) for t in range(3)] for c in range(len(_COLUMNS))]
+_BIT = [_bit(o) for o in range(STENCIL)]
 _FAR_BIT = STENCIL - 1  # presence bit of far offset a: _FAR_BIT + a (bits 26..31)
 _UPPER = STENCIL - CENTRE  # 14 slots: Q_ii and the 13 offsets o > 13 (o - 13)
 _R_START, _R_LEN, _R_SIMD, _R_OFF = 0, 1, 2, 3  # columns of the sub-run table
@@ -50,15 +66,12 @@ def _row_columns(nbr: _NDA(dtype=ti.i32, ndim=2), nbr2: _NDA(dtype=ti.i32, ndim=
         b = ti.u32(0)
         for o in range(STENCIL):
             if o != CENTRE:
-                bit = o if o < CENTRE else o - 1  # _BIT[o]
-                b |= ti.cast(nbr[i, o] >= 0, ti.u32) << ti.cast(bit, ti.u32)
+                b |= ti.cast(nbr[i, o] >= 0, ti.u32) << ti.cast(_bit(o), ti.u32)
         g = 0
         for c in range(_N_NEAR):
-            k = c if c < 4 else c + 1  # _COLUMNS[c] = (k // 3 - 1, k % 3 - 1), (0, 0) skipped
-            base = (k // 3) * 9 + (k % 3) * 3  # _COLUMN_OFFSETS[c][t] = base + t
             low, high, any_ = _BIG, -_BIG, 0
             for t in range(3):
-                j = nbr[i, base + t]
+                j = nbr[i, _column_offset(c, t)]
                 if j >= 0:
                     cand = j - i - (t - 1)
                     low, high, any_ = ti.min(low, cand), ti.max(high, cand), 1

@@ -157,6 +157,18 @@ def test_stencil_matches_csr_assembled_independently(large):
         assert np.array_equal(Yp[1:], Y) and not Yp[0].any()
 
 
+def test_compact_columns_are_the_near_offsets_column_by_column():
+    """The compact layout's column table: column c's three offsets are (di, dj, -1..1) of
+    _COLUMNS[c], and every offset but the centre has its own presence bit."""
+    from kernels.compact import _BIT, _COLUMN_OFFSETS, _COLUMNS
+    from kernels.layout import CENTRE, stencil_offset
+
+    for (di, dj), offsets in zip(_COLUMNS, _COLUMN_OFFSETS):
+        assert [stencil_offset(o) for o in offsets] == [(di, dj, dk) for dk in (-1, 0, 1)]
+    bits = [_BIT[o] for o in range(27) if o != CENTRE]
+    assert sorted(bits) == list(range(26))
+
+
 def test_compact_product_matches_csr_on_a_band_with_gaps(large):
     """The solvers' single-vector product (CompactStencil: upper half of S, presence bits,
     SIMD sub-runs) equals the CSR matrix, with the curvature prior's far part, on a band

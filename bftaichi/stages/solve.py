@@ -266,7 +266,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         again = lifted[raised[lifted]]
         raised[lifted] = True
         h[lifted] += (k + extra[lifted]) * lift
-        add = np.clip(np.maximum(extra[again], k), 0, (STIFFEN - 1) * k - extra[again])
+        add = np.minimum(np.maximum(extra[again], k), (STIFFEN - 1) * k - extra[again])
         extra[again] += add
         S[again, CENTRE] += add
         h[again] += add * target[again]
