@@ -125,10 +125,10 @@ def test_evalviews_table_and_gross_errors_on_a_few_real_frames(tmp_path):
 
 def test_kernel_profile_shares_the_kernel_time_of_a_run(tmp_path):
     sets = [a for s in TINY_SCENE_SETS for a in ("--set", s)]
-    out = _run([TOOLS / "kernel_profile.py", "run", "--out", tmp_path / "run", *sets,
-                "--top", "40"])
+    out = _run([TOOLS / "kernel_profile.py", "--loops", "_integrate_frame", "run", "--out",
+                tmp_path / "run", *sets, "--top", "40"])
     assert (tmp_path / "run" / "mesh.ply").exists()  # the command itself ran
-    lines = out[out.index("kernel time "):].splitlines()
+    lines = out[out.index("kernel time "):out.index("\nthe offloaded tasks")].splitlines()
     total = float(lines[0].split()[2])
     rows = {r.split()[0]: (float(r.split()[1]), float(r.split()[2].rstrip("%")))
             for r in lines[2:] if r.strip()}
@@ -137,6 +137,11 @@ def test_kernel_profile_shares_the_kernel_time_of_a_run(tmp_path):
     assert total > 0
     assert sum(sec for sec, _ in rows.values()) == pytest.approx(total, abs=0.01 + 5e-4 * len(rows))
     assert sum(share for _, share in rows.values()) == pytest.approx(100, abs=0.05 * len(rows))
+    # --loops: the TSDF kernel's offloaded tasks, which add up to its row
+    tasks = out.split("the offloaded tasks of _integrate_frame (in code order):")[1].splitlines()
+    seconds = [float(r.split()[1]) for r in tasks[2:] if r.strip()]
+    assert len(seconds) >= 2
+    assert sum(seconds) == pytest.approx(rows["_integrate_frame"][0], abs=0.001 * (len(seconds) + 1))
 
 
 def test_sigma_breakdown_compares_bulk_and_mean_square():

@@ -11,6 +11,13 @@ it to see shares, not for benchmarks::
 
     python tools/kernel_profile.py fuse ../shared/data/rgbd/7scenes-redkitchen --voxel 0.02 --out out/k2
     python tools/kernel_profile.py run --out out/default --overwrite --top 15
+
+``--loops NAME`` also lists kernel NAME's offloaded tasks one by one (Taichi numbers them
+``0, 1, ...`` in code order: each top-level loop, a static unroll giving each copy its own,
+and the serial code between them), with their seconds and runs: which loop of a kernel the
+time is in::
+
+    python tools/kernel_profile.py --loops superpixels fuse ../shared/data/rgbd/7scenes-redkitchen --voxel 0.02 --frames 0:500:5 --out out/k2
 """
 
 from __future__ import annotations
@@ -28,6 +35,11 @@ def main(argv=None) -> int:
     if "--top" in argv:
         i = argv.index("--top")
         top = int(argv[i + 1])
+        del argv[i:i + 2]
+    loops = None
+    if "--loops" in argv:
+        i = argv.index("--loops")
+        loops = argv[i + 1]
         del argv[i:i + 2]
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
@@ -49,15 +61,25 @@ def main(argv=None) -> int:
     profiler = get_default_kernel_profiler()
     profiler._update_records()  # Taichi 1.7: the backend's records into _traced_records
     totals, calls = defaultdict(float), defaultdict(int)
+    per_loop, loop_calls = defaultdict(float), defaultdict(int)
     for rec in profiler._traced_records:
         name = re.sub(r"_c\d+_\d+_kernel_\d+_.*$", "", rec.name)
         totals[name] += rec.kernel_time / 1000.0  # ms -> s
         calls[name] += 1
+        if name == loops:
+            loop = int(re.search(r"_kernel_(\d+)_", rec.name).group(1))
+            per_loop[loop] += rec.kernel_time / 1000.0
+            loop_calls[loop] += 1
     total = sum(totals.values())
     print(f"kernel time {total:.2f} s in {len(totals)} kernels ({sum(calls.values())} offloaded loops run)")
     print(f"{'kernel':40s} {'seconds':>9s} {'share':>7s} {'loops run':>10s}")
     for name, sec in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:
         print(f"{name:40s} {sec:9.3f} {100 * sec / max(total, 1e-12):6.1f}% {calls[name]:10d}")
+    if loops is not None:
+        print(f"\nthe offloaded tasks of {loops} (in code order):")
+        print(f"{'task':>6s} {'seconds':>9s} {'runs':>10s}")
+        for loop in sorted(per_loop):
+            print(f"{loop:6d} {per_loop[loop]:9.3f} {loop_calls[loop]:10d}")
     return code
 
 
