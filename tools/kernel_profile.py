@@ -29,18 +29,23 @@ from collections import defaultdict
 import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 
 
+def _option(argv: list, flag: str, default=None):
+    """The value after ``flag`` in ``argv`` (both removed), or ``default`` without it: this
+    tool's own options, taken before the rest goes to ``bftaichi``."""
+    if flag not in argv:
+        return default
+    i = argv.index(flag)
+    if i + 1 == len(argv):
+        raise SystemExit(f"kernel_profile.py: {flag} needs a value")
+    value = argv[i + 1]
+    del argv[i:i + 2]
+    return value
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    top = 25
-    if "--top" in argv:
-        i = argv.index("--top")
-        top = int(argv[i + 1])
-        del argv[i:i + 2]
-    loops = None
-    if "--loops" in argv:
-        i = argv.index("--loops")
-        loops = argv[i + 1]
-        del argv[i:i + 2]
+    top = int(_option(argv, "--top", 25))
+    loops = _option(argv, "--loops")
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
         return 0
@@ -63,13 +68,14 @@ def main(argv=None) -> int:
     totals, calls = defaultdict(float), defaultdict(int)
     per_loop, loop_calls = defaultdict(float), defaultdict(int)
     for rec in profiler._traced_records:
-        name = re.sub(r"_c\d+_\d+_kernel_\d+_.*$", "", rec.name)
+        # Taichi names an offloaded task <kernel>_c<id>_<instance>_kernel_<task>_<kind>
+        m = re.match(r"(.*?)_c\d+_\d+_kernel_(\d+)_", rec.name)
+        name = m.group(1) if m else rec.name
         totals[name] += rec.kernel_time / 1000.0  # ms -> s
         calls[name] += 1
-        if name == loops:
-            loop = int(re.search(r"_kernel_(\d+)_", rec.name).group(1))
-            per_loop[loop] += rec.kernel_time / 1000.0
-            loop_calls[loop] += 1
+        if m and name == loops:
+            per_loop[int(m.group(2))] += rec.kernel_time / 1000.0
+            loop_calls[int(m.group(2))] += 1
     total = sum(totals.values())
     print(f"kernel time {total:.2f} s in {len(totals)} kernels ({sum(calls.values())} offloaded loops run)")
     print(f"{'kernel':40s} {'seconds':>9s} {'share':>7s} {'loops run':>10s}")

@@ -118,6 +118,17 @@ def thin_parts(vertices: np.ndarray, gt, radius_m: float, n_samples: int = 400_0
                      for ix in near], bool)
 
 
+def normal_angle(mesh) -> np.ndarray:
+    """(V,) the mean angle (radians) between each vertex's normal and its neighbours' of a
+    ``trimesh.Trimesh``: a crease or a crumpled patch, from the mesh alone."""
+    normals, pairs = mesh.vertex_normals, mesh.edges_unique
+    edge_angle = np.arccos(np.clip(np.einsum("ij,ij->i", normals[pairs[:, 0]],
+                                             normals[pairs[:, 1]]), -1.0, 1.0))
+    degree = np.bincount(pairs.ravel(), minlength=len(normals))
+    return np.bincount(pairs.ravel(), np.repeat(edge_angle, 2), minlength=len(normals)) \
+        / np.maximum(degree, 1)
+
+
 def tail(mesh, err: np.ndarray, sigma: np.ndarray, gt, voxel_m: float | None = None) -> None:
     """The 5 % largest errors against the rest: sigma and two features of the mesh itself, the
     mean angle between a vertex's normal and its neighbours' (a crease or a crumpled patch) and
@@ -129,13 +140,7 @@ def tail(mesh, err: np.ndarray, sigma: np.ndarray, gt, voxel_m: float | None = N
     import igl
     from scipy.stats import spearmanr
 
-    normals, pairs = mesh.vertex_normals, mesh.edges_unique
-    edge_angle = np.arccos(np.clip(np.einsum("ij,ij->i", normals[pairs[:, 0]],
-                                             normals[pairs[:, 1]]), -1.0, 1.0))
-    n = len(normals)
-    degree = np.bincount(pairs.ravel(), minlength=n)
-    angle = np.bincount(pairs.ravel(), np.repeat(edge_angle, 2), minlength=n) \
-        / np.maximum(degree, 1)  # the mean over each vertex's neighbours
+    angle = normal_angle(mesh)
     edges, count = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
     boundary = np.zeros(len(err))
     boundary[edges[count == 1].ravel()] = 1.0

@@ -18,7 +18,6 @@ minus the best constant's (the suite's own definitions, ``tools/suite.py`` ``tar
     python docs/experiments/crease_variance.py runs/dev runs/ho
 """
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -31,35 +30,28 @@ import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 def vertices(run: Path) -> dict:
     """error, sigma, normal angle and voxel of every vertex of one kept suite run."""
     import trimesh
-    from plyfile import PlyData
+    from sigma_breakdown import normal_angle
 
     import bftaichi as bf
     from bftaichi.evaluation.metrics import vertex_errors
     from bftaichi.formats.synthetic import SyntheticDataset
+    from bftaichi.io import read_mesh_ply
 
     cfg = bf.load_config(str(run / "config.toml"), [])
     gt = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m).gt_mesh
-    v = PlyData.read(str(run / "mesh.ply"))
-    xyz = np.stack([v["vertex"][a] for a in "xyz"], axis=1).astype(np.float64)
-    faces = np.vstack(v["face"]["vertex_indices"]).astype(np.int64)
-    mesh = trimesh.Trimesh(xyz, faces, process=False)
-    normals, pairs = mesh.vertex_normals, mesh.edges_unique
-    edge_angle = np.arccos(np.clip(np.einsum("ij,ij->i", normals[pairs[:, 0]],
-                                             normals[pairs[:, 1]]), -1.0, 1.0))
-    degree = np.bincount(pairs.ravel(), minlength=len(xyz))
-    angle = np.bincount(pairs.ravel(), np.repeat(edge_angle, 2), minlength=len(xyz)) \
-        / np.maximum(degree, 1)
-    return {"err": vertex_errors(xyz, gt), "sigma": np.asarray(v["vertex"]["sigma"], np.float64),
-            "angle": angle, "h": cfg.tsdf.voxel_size_m}
+    xyz, faces, extra = read_mesh_ply(run / "mesh.ply")
+    xyz = np.asarray(xyz, np.float64)
+    return {"err": vertex_errors(xyz, gt), "sigma": np.asarray(extra["sigma"], np.float64),
+            "angle": normal_angle(trimesh.Trimesh(xyz, faces, process=False)),
+            "h": cfg.tsdf.voxel_size_m}
 
 
 def scores(err: np.ndarray, sigma: np.ndarray) -> tuple:
-    """coverage at 1, 2, 3 sigma and the NLL minus the best constant's (bftaichi.evaluation.
-    metrics.uncertainty_metrics)."""
-    z = err / np.maximum(sigma, np.finfo(np.float64).tiny)
-    nll = float(np.mean(np.log(np.maximum(sigma, np.finfo(np.float64).tiny)) + 0.5 * z * z))
-    return (*(float(np.mean(z <= k)) for k in (1, 2, 3)),
-            nll - (math.log(math.sqrt(float(np.mean(err ** 2)))) + 0.5))
+    """coverage at 1, 2, 3 sigma and the NLL minus the best constant's."""
+    from bftaichi.evaluation.metrics import uncertainty_metrics
+
+    m = uncertainty_metrics(err, sigma, np.zeros_like(err))
+    return (*(m[f"coverage@{k}sigma"] for k in (1, 2, 3)), m["nll_vs_constant"])
 
 
 def main() -> int:

@@ -27,10 +27,10 @@ def main() -> int:
     ap.add_argument("--cases", default="", help="comma-separated run folder names (default all)")
     args = ap.parse_args()
     import igl
-    from plyfile import PlyData
 
     import bftaichi as bf
     from bftaichi.formats.synthetic import SyntheticDataset
+    from bftaichi.io import read_mesh_ply
 
     runs = sorted(p.parent for p in args.runs.glob("*/mesh.ply"))
     if args.cases:
@@ -45,8 +45,7 @@ def main() -> int:
         h = cfg.tsdf.voxel_size_m
         cells = []
         for name in ("mesh.ply", "tsdf_mesh.ply"):
-            v = PlyData.read(str(run / name))["vertex"]
-            xyz = np.stack([v[a] for a in "xyz"], axis=1).astype(np.float64)
+            xyz = np.asarray(read_mesh_ply(run / name)[0], np.float64)
             s = igl.signed_distance(xyz, np.asarray(gt.vertices, np.float64),
                                     np.asarray(gt.faces, np.int64))[0] / h
             near = np.abs(s) < 2
