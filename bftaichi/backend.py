@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import weakref
 
 from .errors import BftaichiError
 
@@ -64,6 +65,7 @@ def init(arch: str = "cpu", *, debug: bool = False, offline_cache: bool = True,
     if num_threads is not None:
         kwargs["cpu_max_num_threads"] = int(num_threads)
     _lean_source_positions()
+    _remembered_source_lines()
     with _stdout_to_stderr():  # Taichi prints "[Taichi] Starting on arch=..." on stdout
         ti.init(**kwargs)
     _state["arch"] = arch
@@ -90,9 +92,9 @@ def skip_frozen_frame_scans() -> None:
     inside a class, on the frame three levels up. For a function at a module's top level,
     defined while the module is imported, that is a frame of the frozen
     ``<frozen importlib._bootstrap>``, which has no source file, so :func:`inspect.getmodule`
-    scans every module in ``sys.modules`` (twice per decorator) and finds none. The ~570
-    decorators run when Taichi and the kernels are imported, ~1,600 modules each scan: 0.34 s
-    of a warm ``bftaichi run`` (docs/measurements.md). Mapping those names to no module in
+    scans every module in ``sys.modules`` (twice per decorator) and finds none. Hundreds of
+    decorators run when Taichi and the kernels are imported, each scan ~1,600 modules: ~0.3 s
+    of each process's start (docs/experiments/frozen_frame_scans.py). Mapping those names to no module in
     :mod:`inspect`'s file cache gives the same answer (none) without the scan. Call it before
     Taichi is imported."""
     import inspect
@@ -129,6 +131,40 @@ def _lean_source_positions() -> None:
 
     Ctx.get_pos_info = get_pos_info
     Ctx._bftaichi_lean = True
+
+
+def _remembered_source_lines() -> None:
+    """Read each Taichi function's source once per process.
+
+    Taichi 1.7's front end reads a function's source lines (``inspect.getsourcelines``, which
+    tokenises the file's lines from the function's first) every time it builds a kernel that
+    calls the function: 471 reads of 86 functions in a warm ``bftaichi run``, 0.21 s. The
+    lines of a function object do not change while it lives, so they are kept by function
+    (docs/measurements.md, "Start-up: Taichi's decorators scanned every module"). Applied only
+    where ``taichi.lang.kernel_impl.getsourcelines`` exists as in 1.7."""
+    try:
+        from taichi.lang import kernel_impl
+    except ImportError:
+        return
+    read = getattr(kernel_impl, "getsourcelines", None)
+    if not callable(read) or getattr(read, "_bftaichi_remembered", False):
+        return
+    lines = weakref.WeakKeyDictionary()
+
+    def getsourcelines(func):
+        try:
+            return lines[func]
+        except (KeyError, TypeError):  # not read yet, or an object that takes no weak reference
+            pass
+        found = read(func)
+        try:
+            lines[func] = found
+        except TypeError:
+            pass
+        return found
+
+    getsourcelines._bftaichi_remembered = True
+    kernel_impl.getsourcelines = getsourcelines
 
 
 @contextlib.contextmanager

@@ -301,3 +301,45 @@ def test_importing_taichi_after_bftaichi_does_not_scan_every_module_per_decorato
     # not seen yet (here oriented.py) costs one scan, each decorator at a module's top level
     # cost two (652,302 calls here without the fix, 3,928 with it)
     assert int(scans) < 20_000, scans
+
+
+def test_taichi_reads_a_functions_source_once_per_process(tmp_path):
+    """bftaichi.backend._remembered_source_lines: Taichi's front end read a ``@ti.func``'s
+    source lines again for every kernel that calls it (471 reads of 86 functions in a warm
+    ``bftaichi run``); after bftaichi.init two kernels calling one function read it once, and
+    both still compute with it."""
+    module = tmp_path / "twokernels.py"
+    module.write_text(
+        "import taichi as ti\n\n"
+        "@ti.func\n"
+        "def square(x):\n"
+        "    return x * x\n\n"
+        "@ti.kernel\n"
+        "def first(a: ti.types.ndarray(dtype=ti.f32, ndim=1)):\n"
+        "    for i in range(a.shape[0]):\n"
+        "        a[i] = square(a[i])\n\n"
+        "@ti.kernel\n"
+        "def second(a: ti.types.ndarray(dtype=ti.f32, ndim=1)):\n"
+        "    for i in range(a.shape[0]):\n"
+        "        a[i] = square(a[i]) + 1\n")
+    code = ("import inspect, sys\n"
+            f"sys.path.insert(0, {str(tmp_path)!r})\n"
+            "reads = []\n"
+            "getsourcelines = inspect.getsourcelines\n"
+            "def counted(obj):\n"
+            "    reads.append(getattr(obj, '__name__', ''))\n"
+            "    return getsourcelines(obj)\n"
+            "inspect.getsourcelines = counted\n"
+            "import bftaichi, numpy as np\n"
+            "bftaichi.init()\n"
+            "import twokernels\n"
+            "a = np.array([1, 2, 3], np.float32)\n"
+            "twokernels.first(a)\n"
+            "twokernels.second(a)\n"
+            "print(reads.count('square'), a.tolist())\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    reads, values = res.stdout.split(maxsplit=1)
+    assert values.strip() == "[2.0, 17.0, 82.0]"
+    assert reads == "1", res.stdout
