@@ -13,7 +13,7 @@ from kernels.layout import BLOCK, MAP_BLOCKS
 
 from .errors import DataError
 
-__all__ = ["intrinsics", "look_at", "check_K", "check_pose", "check_depth", "MAP_VOXELS",
+__all__ = ["intrinsics", "look_at", "pixel_rays", "check_K", "check_pose", "check_depth", "MAP_VOXELS",
            "LOCAL_ORIGIN_VOXELS", "local_origin", "pose_in_local", "points_in_local",
            "points_in_world", "mesh_in_local"]
 
@@ -71,6 +71,21 @@ def check_K(K, where: str) -> np.ndarray:
     if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0 or K[0, 1] != 0:
         raise DataError(f"{where}: intrinsics are not a pinhole matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]")
     return K
+
+
+def pixel_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(3, height * width) float64 ``K^-1 [u, v, 1]`` of every pixel centre, row by row, z = 1.
+
+    For a pinhole ``K`` whose last row is exactly (0, 0, 1) by the diagonal's reciprocals,
+    ``(u - cx) * (1 / fx)``: the bits ``np.linalg.solve(K, .)`` gives (its triangular solve
+    multiplies by them; docs/experiments/render_rays.py), ~15x faster; otherwise solved."""
+    u, v = (a.ravel() for a in np.meshgrid(np.arange(width, dtype=np.float64),
+                                           np.arange(height, dtype=np.float64)))
+    if np.array_equal(K[2], [0.0, 0.0, 1.0]):
+        return np.stack([(u - K[0, 2]) * (1.0 / K[0, 0]), (v - K[1, 2]) * (1.0 / K[1, 1]),
+                         np.ones(u.size)])
+    rays = np.linalg.solve(K, np.stack([u, v, np.ones(u.size)]))
+    return rays / rays[2]
 
 
 MAX_FIELD_OF_VIEW_DEG = 170.0

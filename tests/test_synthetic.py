@@ -56,6 +56,20 @@ def test_sphere_depth_and_silhouette():
     assert np.abs(np.linalg.norm(p_W[inner], axis=1) - r).max() < 1e-4
 
 
+def test_render_rays_agree_with_solving_for_them():
+    """DepthRenderer.render's rays (bftaichi.geometry.pixel_rays): K^-1 [u, v, 1] by the
+    diagonal's reciprocals for a pinhole K whose last row is exactly (0, 0, 1), solved
+    otherwise (a last row a rounding off): both give the same depth image to float32
+    rounding."""
+    mesh = make_mesh(SyntheticConfig(mesh="sphere", radius_m=0.3))
+    K_off = K_ODD.copy()
+    K_off[2, 2] = 1.0 + 1e-13
+    fast, solved = _head_on(mesh, 1.5), _head_on(mesh, 1.5, K=K_off)
+    assert (fast > 0).sum() > 1000
+    np.testing.assert_array_equal(fast > 0, solved > 0)
+    np.testing.assert_allclose(fast, solved, rtol=1e-6, atol=0)
+
+
 def test_box_face_depth_is_constant():
     depth = _head_on(make_mesh(SyntheticConfig(mesh="box", radius_m=0.3)), 1.0)
     face = depth[100:141, 140:181]  # well inside the face's image (|y|, |z| < 0.3 m)

@@ -65,7 +65,7 @@ from ..config import PRIMITIVES, SyntheticConfig
 from ..errors import ConfigError, DataError
 from ..evaluation.metrics import check_mesh_file
 from ..frame import Frame, clean_depth
-from ..geometry import check_K, check_pose, intrinsics, look_at
+from ..geometry import check_K, check_pose, intrinsics, look_at, pixel_rays
 from ..io import atomic_write_bytes, ensure_out_dir, write_json, write_mesh_ply
 
 __all__ = [
@@ -397,15 +397,12 @@ class DepthRenderer:
         width, height = int(width), int(height)
         if width < 1 or height < 1:
             raise DataError(f"DepthRenderer.render: image size {width}x{height} is empty")
-        u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-        pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=0)  # (3, H*W)
-        dirs_C = np.linalg.solve(K, pix)
-        dirs_C /= dirs_C[2]
+        dirs_C = pixel_rays(K, width, height)
         dirs_W = (T_W_C[:3, :3] @ dirs_C).T  # (H*W, 3), camera-z component 1
         origin = T_W_C[:3, 3]
         origins = np.broadcast_to(origin, dirs_W.shape)
         tri = self._intersector.intersects_first(origins, dirs_W)
-        depth = np.zeros(u.size, dtype=np.float64)
+        depth = np.zeros(width * height, dtype=np.float64)
         hit = np.flatnonzero(tri >= 0)
         if hit.size:
             n = self._plane_normal[tri[hit]]
