@@ -21,9 +21,10 @@ import os as _os
 # Taichi prints a banner on import; keep library output quiet unless the user asks for it.
 _os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 
-from .backend import init, skip_frozen_frame_scans  # noqa: E402
+from .backend import init, _skip_frozen_frame_scans  # noqa: E402
 
-skip_frozen_frame_scans()  # before Taichi is imported: 0.35 s of every process's start
+_skip_frozen_frame_scans()  # before Taichi is imported: ~0.3 s of every process's start
+del _skip_frozen_frame_scans
 from .config import Config, load_config  # noqa: E402
 from .formats import open_dataset  # noqa: E402
 from .errors import BftaichiError, ConfigError, DataError, NoSurfaceError  # noqa: E402

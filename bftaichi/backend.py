@@ -85,7 +85,7 @@ def _advanced_optimization() -> bool:
     return os.environ.get("BFTAICHI_TAICHI_OPT", "") == "full"
 
 
-def skip_frozen_frame_scans() -> None:
+def _skip_frozen_frame_scans() -> None:
     """Let :func:`inspect.getmodule` answer for the import machinery's frames at once.
 
     Taichi 1.7's ``@ti.func`` decorator asks :func:`inspect.getframeinfo` whether it is used
@@ -94,9 +94,9 @@ def skip_frozen_frame_scans() -> None:
     ``<frozen importlib._bootstrap>``, which has no source file, so :func:`inspect.getmodule`
     scans every module in ``sys.modules`` (twice per decorator) and finds none. Hundreds of
     decorators run when Taichi and the kernels are imported, each scan ~1,600 modules: ~0.3 s
-    of each process's start (docs/experiments/frozen_frame_scans.py). Mapping those names to no module in
-    :mod:`inspect`'s file cache gives the same answer (none) without the scan. Call it before
-    Taichi is imported."""
+    of each process's start (docs/experiments/frozen_frame_scans.py). Mapping those names to
+    no module in :mod:`inspect`'s file cache gives the same answer (none) without the scan.
+    ``import bftaichi`` calls it, before Taichi is imported."""
     import inspect
 
     cache = getattr(inspect, "modulesbyfile", None)
@@ -138,10 +138,10 @@ def _remembered_source_lines() -> None:
 
     Taichi 1.7's front end reads a function's source lines (``inspect.getsourcelines``, which
     tokenises the file's lines from the function's first) every time it builds a kernel that
-    calls the function: 471 reads of 86 functions in a warm ``bftaichi run``, 0.21 s. The
-    lines of a function object do not change while it lives, so they are kept by function
-    (docs/measurements.md, "Start-up: Taichi's decorators scanned every module"). Applied only
-    where ``taichi.lang.kernel_impl.getsourcelines`` exists as in 1.7."""
+    calls the function: 471 reads of 86 functions in a warm ``bftaichi run``, 0.21-0.24 s
+    (``python docs/experiments/frozen_frame_scans.py --reads --undo``; 0.08-0.09 s with this).
+    The lines of a function object do not change while it lives, so they are kept by function.
+    Applied only where ``taichi.lang.kernel_impl.getsourcelines`` exists as in 1.7."""
     try:
         from taichi.lang import kernel_impl
     except ImportError:

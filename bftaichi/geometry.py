@@ -13,8 +13,8 @@ from kernels.layout import BLOCK, MAP_BLOCKS
 
 from .errors import DataError
 
-__all__ = ["intrinsics", "look_at", "pixel_rays", "check_K", "check_pose", "check_depth", "MAP_VOXELS",
-           "LOCAL_ORIGIN_VOXELS", "local_origin", "pose_in_local", "points_in_local",
+__all__ = ["intrinsics", "look_at", "pixel_rays", "check_K", "check_pose", "check_depth",
+           "MAP_VOXELS", "LOCAL_ORIGIN_VOXELS", "local_origin", "pose_in_local", "points_in_local",
            "points_in_world", "mesh_in_local"]
 
 #: Voxels per axis of the TSDF's block map (:data:`kernels.layout.MAP_BLOCKS` blocks of 8): the

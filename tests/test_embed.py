@@ -261,7 +261,7 @@ def test_init_compiles_without_taichis_advanced_passes_unless_asked(setting, exp
 
 
 def test_importing_taichi_after_bftaichi_does_not_scan_every_module_per_decorator(tmp_path):
-    """bftaichi.backend.skip_frozen_frame_scans: Taichi's ``@ti.func`` asks inspect whether it
+    """bftaichi.backend._skip_frozen_frame_scans: Taichi's ``@ti.func`` asks inspect whether it
     sits in a class, which for a module-level function scanned all of ``sys.modules`` (0.35 s
     of each process's start). After ``import bftaichi`` importing Taichi and the kernels scans
     none, and a ``@ti.data_oriented`` class's ``@ti.func`` method still works."""

@@ -1,4 +1,4 @@
-"""What ``bftaichi.backend.skip_frozen_frame_scans`` saves a process (issue 16; the default:
+"""What ``bftaichi.backend._skip_frozen_frame_scans`` saves a process (issue 16; the default:
 docs/measurements.md, "Start-up: Taichi's decorators scanned every module").
 
 Each round times, in fresh processes, ``import bftaichi`` followed by what a command imports
@@ -83,8 +83,8 @@ def main(argv=None) -> int:
     ap.add_argument("--undo", action="store_true", help="with --reads: without the memo")
     args = ap.parse_args(argv)
     if args.reads:
-        res = subprocess.run([sys.executable, "-c", READS.format(undo=args.undo)], cwd=ROOT, capture_output=True,
-                             text=True, check=True)
+        res = subprocess.run([sys.executable, "-c", READS.format(undo=args.undo)], cwd=ROOT,
+                             capture_output=True, text=True, check=True)
         print(res.stdout.strip().splitlines()[-1])
         return 0
     fixed, undone = [], []
@@ -92,8 +92,8 @@ def main(argv=None) -> int:
         undone.append(seconds(True))
         fixed.append(seconds(False))
         print(f"round {r + 1}: scans {undone[-1]:.3f} s, without them {fixed[-1]:.3f} s")
-    print(f"median: scans {statistics.median(undone):.3f} s, without them "
-          f"{statistics.median(fixed):.3f} s, saved {statistics.median(undone) - statistics.median(fixed):.3f} s")
+    slow, fast = statistics.median(undone), statistics.median(fixed)
+    print(f"median: scans {slow:.3f} s, without them {fast:.3f} s, saved {slow - fast:.3f} s")
     return 0
 
 
