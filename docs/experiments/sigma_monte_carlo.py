@@ -33,6 +33,7 @@ Three tables, their columns the means over the rows' voxels or edges in mm^2:
 Usage::
 
     python docs/experiments/sigma_monte_carlo.py suzanne sparse_far --draws 6
+    python docs/experiments/sigma_monte_carlo.py suzanne sparse_far --draws 6 --exact
     python docs/experiments/sigma_monte_carlo.py suzanne dense_near --draws 6 \
         --set observation.local_noise=false --set observation.fit_noise=false
 """
@@ -55,13 +56,18 @@ VARIANTS = {"default": [], "blend": ["solver.prior_bias=false"],
 CAPTURED = {}
 
 
-def _capture():
+def _capture(exact: bool = False):
     """Keep the sandwich ``S`` the perturbation solves estimate and the data share ``rho``
-    (the ``S`` variant's ``var`` is replaced by them: ``var`` = S, ``cov[:, 0]`` = rho)."""
+    (the ``S`` variant's ``var`` is replaced by them: ``var`` = S, ``cov[:, 0]`` = rho).
+    ``exact``: ``S`` is instead ``diag(Q^-1 D Q^-1)`` with ``D`` the accumulated data stencil
+    itself (not the perturbations' box-spread one), by the colouring probes: ``X = Q^-1 D
+    Q^-1 Z``, two batched solves, deterministic (docs/experiments/exact_sandwich.patch)."""
     import kernels.probes as probes
     from bftaichi.stages import variance
 
     moments, share = probes.perturbation_moments, variance._data_share
+    if exact:
+        moments = _exact_sandwich()
 
     def perturbation_moments(*a, **k):
         out = moments(*a, **k)
@@ -74,6 +80,35 @@ def _capture():
         return CAPTURED["rho"]
 
     probes.perturbation_moments, variance._data_share = perturbation_moments, data_share
+
+
+def _exact_sandwich():
+    """A stand-in for :func:`kernels.probes.perturbation_moments` returning the exact
+    sandwich's diagonal and face covariances (:func:`_capture`); the data stencil and the
+    band's voxels are kept as :func:`bftaichi.stages.bandsolve.add_prior` receives them."""
+    import kernels.probes as probes
+    from bftaichi.stages import bandsolve
+    from kernels.pcg import pcg_batched
+    from kernels.stencil import apply_Q_batched
+
+    add = bandsolve.add_prior
+
+    def add_prior(S, h, band, *a, **k):
+        CAPTURED["D"], CAPTURED["ijk"] = S.copy(), band.ijk
+        return add(S, h, band, *a, **k)
+
+    bandsolve.add_prior = add_prior
+
+    def moments(S, nbr, W, n_probes=16, seed=0, *, tol, maxiter, far=None):
+        Z = probes.probe_vectors(len(S), n_probes, seed, method="coloring", ijk=CAPTURED["ijk"])
+        U, _ = pcg_batched(S, nbr, Z, None, tol, maxiter, np.float32, check=False, far=far)
+        DU = apply_Q_batched(CAPTURED["D"], nbr, U).astype(np.float32)
+        X, info = pcg_batched(S, nbr, DU, None, tol, maxiter, np.float32, check=False, far=far)
+        den = np.einsum("ij,ij->i", Z, Z, dtype=np.float64)
+        s = (np.einsum("ij,ij->i", Z, X, dtype=np.float64) / den).astype(np.float32)
+        return s, probes.probe_covariance(Z, X, nbr, den), info
+
+    return moments
 
 
 def _keys(ijk) -> np.ndarray:
@@ -107,13 +142,15 @@ def main(argv=None) -> int:
     ap.add_argument("--near", type=float, default=1.0, help="voxels from the true surface")
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--set", dest="sets", action="append", default=[])
+    ap.add_argument("--exact", action="store_true", help="S: the exact sandwich by colouring "
+                    "probes and the data stencil itself, not the perturbation solves")
     args = ap.parse_args(argv)
 
     from suite import case_sets
 
     from bftaichi.evaluation.metrics import band_sdf
 
-    _capture()
+    _capture(args.exact)
     base = case_sets(args.mesh, args.condition, args.data) + args.sets + ["run.plots=false"]
     runs = {k: [] for k in VARIANTS}
     phi = None
