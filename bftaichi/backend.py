@@ -85,6 +85,10 @@ def _advanced_optimization() -> bool:
     return os.environ.get("BFTAICHI_TAICHI_OPT", "") == "full"
 
 
+_FROZEN_FILES = ("<frozen importlib._bootstrap>", "<frozen importlib._bootstrap_external>")
+"""The file names of the import machinery's frames (:func:`_skip_frozen_frame_scans`)."""
+
+
 def _skip_frozen_frame_scans() -> None:
     """Let :func:`inspect.getmodule` answer for the import machinery's frames at once.
 
@@ -101,7 +105,7 @@ def _skip_frozen_frame_scans() -> None:
 
     cache = getattr(inspect, "modulesbyfile", None)
     if isinstance(cache, dict):
-        for name in ("<frozen importlib._bootstrap>", "<frozen importlib._bootstrap_external>"):
+        for name in _FROZEN_FILES:
             cache.setdefault(name, "")  # sys.modules has no "": getmodule returns None
 
 

@@ -260,13 +260,32 @@ def test_init_compiles_without_taichis_advanced_passes_unless_asked(setting, exp
     assert res.stdout.strip().splitlines()[-1] == expected
 
 
+def _count_inspect_calls(tmp_path, name: str, source: str, wrapped: str, body: str) -> tuple:
+    """Run ``body`` in a fresh Python with ``tmp_path / name.py`` (``source``) importable and
+    every call of ``inspect.<wrapped>`` recorded in ``calls`` (its argument's ``__name__``); the
+    body prints one line, returned split at its first space."""
+    (tmp_path / f"{name}.py").write_text(source)
+    code = ("import inspect, sys\n"
+            f"sys.path.insert(0, {str(tmp_path)!r})\n"
+            "calls = []\n"
+            f"original = inspect.{wrapped}\n"
+            "def counted(obj):\n"
+            "    calls.append(getattr(obj, '__name__', ''))\n"
+            "    return original(obj)\n"
+            f"inspect.{wrapped} = counted\n" + body)
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    return tuple(res.stdout.strip().splitlines()[-1].split(maxsplit=1))
+
+
 def test_importing_taichi_after_bftaichi_does_not_scan_every_module_per_decorator(tmp_path):
     """bftaichi.backend._skip_frozen_frame_scans: Taichi's ``@ti.func`` asks inspect whether it
-    sits in a class, which for a module-level function scanned all of ``sys.modules`` (0.35 s
+    sits in a class, which for a module-level function scanned all of ``sys.modules`` (~0.3 s
     of each process's start). After ``import bftaichi`` importing Taichi and the kernels scans
     none, and a ``@ti.data_oriented`` class's ``@ti.func`` method still works."""
-    module = tmp_path / "oriented.py"
-    module.write_text(
+    scans, doubled = _count_inspect_calls(
+        tmp_path, "oriented",
         "import taichi as ti\n\n"
         "@ti.data_oriented\n"
         "class Doubler:\n"
@@ -276,26 +295,15 @@ def test_importing_taichi_after_bftaichi_does_not_scan_every_module_per_decorato
         "    @ti.kernel\n"
         "    def run(self, a: ti.types.ndarray(dtype=ti.f32, ndim=1)):\n"
         "        for i in range(a.shape[0]):\n"
-        "            a[i] = self.twice(a[i])\n")
-    code = ("import inspect, sys\n"
-            f"sys.path.insert(0, {str(tmp_path)!r})\n"
-            "calls = [0]\n"
-            "ismodule = inspect.ismodule\n"
-            "def counted(obj):\n"
-            "    calls[0] += 1\n"
-            "    return ismodule(obj)\n"
-            "inspect.ismodule = counted\n"
-            "import bftaichi, taichi as ti, numpy as np\n"
-            "import kernels.dataterm, kernels.compact, kernels.raycast\n"
-            "import oriented\n"
-            "bftaichi.init()\n"
-            "a = np.arange(3, dtype=np.float32)\n"
-            "oriented.Doubler().run(a)\n"
-            "print(calls[0], a.tolist())\n")
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                         timeout=300)
-    assert res.returncode == 0, res.stderr
-    scans, doubled = res.stdout.split(maxsplit=1)
+        "            a[i] = self.twice(a[i])\n",
+        "ismodule",
+        "import bftaichi, taichi as ti, numpy as np\n"
+        "import kernels.dataterm, kernels.compact, kernels.raycast\n"
+        "import oriented\n"
+        "bftaichi.init()\n"
+        "a = np.arange(3, dtype=np.float32)\n"
+        "oriented.Doubler().run(a)\n"
+        "print(len(calls), a.tolist())\n")
     assert doubled.strip() == "[0.0, 2.0, 4.0]"
     # a scan of sys.modules asks ismodule of each of its ~1,600 modules; a file inspect has
     # not seen yet (here oriented.py) costs one scan, each decorator at a module's top level
@@ -308,8 +316,8 @@ def test_taichi_reads_a_functions_source_once_per_process(tmp_path):
     source lines again for every kernel that calls it (471 reads of 86 functions in a warm
     ``bftaichi run``); after bftaichi.init two kernels calling one function read it once, and
     both still compute with it."""
-    module = tmp_path / "twokernels.py"
-    module.write_text(
+    reads, values = _count_inspect_calls(
+        tmp_path, "twokernels",
         "import taichi as ti\n\n"
         "@ti.func\n"
         "def square(x):\n"
@@ -321,25 +329,14 @@ def test_taichi_reads_a_functions_source_once_per_process(tmp_path):
         "@ti.kernel\n"
         "def second(a: ti.types.ndarray(dtype=ti.f32, ndim=1)):\n"
         "    for i in range(a.shape[0]):\n"
-        "        a[i] = square(a[i]) + 1\n")
-    code = ("import inspect, sys\n"
-            f"sys.path.insert(0, {str(tmp_path)!r})\n"
-            "reads = []\n"
-            "getsourcelines = inspect.getsourcelines\n"
-            "def counted(obj):\n"
-            "    reads.append(getattr(obj, '__name__', ''))\n"
-            "    return getsourcelines(obj)\n"
-            "inspect.getsourcelines = counted\n"
-            "import bftaichi, numpy as np\n"
-            "bftaichi.init()\n"
-            "import twokernels\n"
-            "a = np.array([1, 2, 3], np.float32)\n"
-            "twokernels.first(a)\n"
-            "twokernels.second(a)\n"
-            "print(reads.count('square'), a.tolist())\n")
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                         timeout=300)
-    assert res.returncode == 0, res.stderr
-    reads, values = res.stdout.split(maxsplit=1)
+        "        a[i] = square(a[i]) + 1\n",
+        "getsourcelines",
+        "import bftaichi, numpy as np\n"
+        "bftaichi.init()\n"
+        "import twokernels\n"
+        "a = np.array([1, 2, 3], np.float32)\n"
+        "twokernels.first(a)\n"
+        "twokernels.second(a)\n"
+        "print(calls.count('square'), a.tolist())\n")
     assert values.strip() == "[2.0, 17.0, 82.0]"
-    assert reads == "1", res.stdout
+    assert reads == "1", (reads, values)

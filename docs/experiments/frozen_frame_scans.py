@@ -31,7 +31,7 @@ t = time.perf_counter()
 import inspect
 import bftaichi
 if {undo}:
-    for name in ("<frozen importlib._bootstrap>", "<frozen importlib._bootstrap_external>"):
+    for name in bftaichi.backend._FROZEN_FILES:
         inspect.modulesbyfile.pop(name, None)
 from bftaichi.process import freeze_heap
 freeze_heap()
