@@ -69,6 +69,12 @@ MISFIT_CAP = 100.0
 #: dropout, 1.2 at the surface), which does not move the zero crossing; counted, it made sigma
 #: ~2x too large on smooth surfaces.
 MISFIT_NEAR = 1.5
+#: Columns of the misfit sums (per voxel, each weighted by ``a_c s``): the squared residual
+#: (capped), the noise variance the model expects of it, the weight itself, and for the line the
+#: residuals follow across the samples' distance ``y`` from their own pixel's surface
+#: (:func:`bftaichi.stages.observe.surface_excess`) the residual (capped alike), ``y``,
+#: ``y^2`` and ``r y``. Voxel units in the kernel (voxel, voxel^2).
+MISFIT_COLUMNS = 7
 ROW_ACCEPTED, ROW_DROPPED = 1, 2  # row status in frame_rows (0: no sample, or gated)
 
 
@@ -285,6 +291,10 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                             inv_h2 = prm[P_INV_VOXEL] * prm[P_INV_VOXEL]
                             r2 = ti.min(r * r, MISFIT_CAP * var_k) * inv_h2
                             v2 = ti.max(var_k - p, 0.1 * var_k) * inv_h2
+                            # the residual capped as its square is, and y, in voxels
+                            cap = ti.sqrt(MISFIT_CAP * var_k)
+                            rv = ti.min(ti.max(r, -cap), cap) * prm[P_INV_VOXEL]
+                            yv = y * prm[P_INV_VOXEL]
                             for c in ti.static(range(8)):
                                 sa = a[c] * share * MISFIT_SCALE
                                 # this thread's copy: plain adds (`+=` would be atomic)
@@ -292,6 +302,10 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                                 R_acc[part, i, 0] = R_acc[part, i, 0] + fixed_point(sa * r2)
                                 R_acc[part, i, 1] = R_acc[part, i, 1] + fixed_point(sa * v2)
                                 R_acc[part, i, 2] = R_acc[part, i, 2] + fixed_point(sa)
+                                R_acc[part, i, 3] = R_acc[part, i, 3] + fixed_point(sa * rv)
+                                R_acc[part, i, 4] = R_acc[part, i, 4] + fixed_point(sa * yv)
+                                R_acc[part, i, 5] = R_acc[part, i, 5] + fixed_point(sa * yv * yv)
+                                R_acc[part, i, 6] = R_acc[part, i, 6] + fixed_point(sa * rv * yv)
                     elif ti.static(mode == MODE_DIAGONAL):  # (A^T W A)_ii alone, as below
                         if accepted:
                             D_acc = ti.static(sink[0])
@@ -509,12 +523,14 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
                  mu: _NDA(dtype=ti.f32, ndim=1), var: _NDA(dtype=ti.f32, ndim=1),
                  R_acc: _NDA(dtype=ti.i64, ndim=3), counts: _NDA(dtype=ti.i64, ndim=2),
                  scratch: _NDA(dtype=ti.i32, ndim=3), blocks: _NDA(dtype=ti.i32, ndim=3)):
-    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, 3), per voxel, in
-    1 / MISFIT_SCALE: ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k a_k s_k
-    (sigma_k^2 - p_k)`` (voxel^2; ``p_k = sum_c a_c^2 var_c`` <= 0.9 sigma_k^2, the part the fit
-    absorbs) and ``sum_k a_k s_k``, over the accepted samples k within ``MISFIT_NEAR`` voxels of
-    their pixel's surface (as :func:`observe_frame`): ``r_k = y_k - a_k . mu``, ``sigma_k`` its
-    noise, ``s_k = w_k sigma_k^2`` its share of its pixel. Per-thread integer adds."""
+    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, MISFIT_COLUMNS),
+    per voxel, in 1 / MISFIT_SCALE: ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k
+    a_k s_k (sigma_k^2 - p_k)`` (voxel^2; ``p_k = sum_c a_c^2 var_c`` <= 0.9 sigma_k^2, the part
+    the fit absorbs), ``sum_k a_k s_k``, and ``sum_k a_k s_k`` times ``rc_k``, ``y_k``, ``y_k^2``
+    and ``rc_k y_k`` (voxels; ``rc_k`` is ``r_k`` clipped to ``+-sqrt(MISFIT_CAP) sigma_k``, as
+    its square is), over the accepted samples k within ``MISFIT_NEAR`` voxels of their pixel's
+    surface (as :func:`observe_frame`): ``r_k = y_k - a_k . mu``, ``sigma_k`` its noise, ``s_k =
+    w_k sigma_k^2`` its share of its pixel. Per-thread integer adds."""
     n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, R_acc.shape[0]
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))  # as in observe_frame
     for t in range(n_virtual):

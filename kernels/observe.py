@@ -113,7 +113,7 @@ from .dataterm import (C_SATURATED, COUNT_NAMES, N_COUNTS, N_HALF, N_PARAMS, P_A
                        P_COS_MIN, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
                        P_K, P_M, P_NORMAL_NOISE, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE,
                        P_SHARE, P_SPACING, P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
-                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_SCALE, estimate_normals,
+                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_COLUMNS, MISFIT_SCALE, estimate_normals,
                        finalize_stencil, misfit_frame, observe_frame, observe_rows, superpixels,
                        window_sums)
 from .fixedpoint import (FRACTION_BITS, GROWTH_LIMIT, accumulator_parts, growth_bound,
@@ -511,7 +511,8 @@ class Observer:
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         mu, var = self._band_fields(mu, var)
         if self._R_acc is None:
-            self._R_acc = zeros_aligned((self.parts, max(self.n_voxels, 1), 3), np.int64)
+            self._R_acc = zeros_aligned((self.parts, max(self.n_voxels, 1), MISFIT_COLUMNS),
+                                        np.int64)
         if not self.n_voxels:
             return
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
@@ -528,27 +529,31 @@ class Observer:
         return mu, var
 
     def misfit_sums(self) -> np.ndarray:
-        """(N, 3) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
+        """(N, 7) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
         residuals ``sum_k a_k s_k min(r_k^2, cap sigma_k^2)`` and noise variances ``sum_k a_k
-        s_k sigma_k^2`` (metres^2) and the pixels ``sum_k a_k s_k`` (``s_k``: the sample's
-        share of its pixel; the samples within ``MISFIT_NEAR`` voxels of their pixel's surface,
+        s_k sigma_k^2`` (metres^2), the pixels ``sum_k a_k s_k`` (``s_k``: the sample's share of
+        its pixel; the samples within ``MISFIT_NEAR`` voxels of their pixel's surface,
         :func:`kernels.dataterm.misfit_frame`), so column 0 / column 2 is the mean squared
         residual of the pixels reaching the voxel and column 1 / column 2 what the model
-        expects of it."""
+        expects of it; then ``sum_k a_k s_k`` times the residual ``r_k`` (clipped as its square
+        is; metres), the sample's distance ``y_k`` from its pixel's surface (metres), ``y_k^2``
+        and ``r_k y_k`` (metres^2): the line the residuals follow across ``y``."""
         if self._R_acc is None or not self.n_voxels:
-            return np.zeros((self.n_voxels, 3))
+            return np.zeros((self.n_voxels, MISFIT_COLUMNS))
         R = self._R_acc.sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
-        R[:, :2] *= self.voxel_size ** 2
+        h = self.voxel_size
+        R[:, [0, 1, 5, 6]] *= h * h
+        R[:, [3, 4]] *= h
         return R
 
     def misfit_window(self, nbr: np.ndarray) -> np.ndarray:
-        """:meth:`misfit_sums` summed over each voxel's 27-point window (N, 3) float64, the
+        """:meth:`misfit_sums` summed over each voxel's 27-point window (N, 7) float64, the
         voxels ``nbr`` (N, 27) int32 names (-1: outside the band). One kernel; deterministic."""
         sums = np.ascontiguousarray(self.misfit_sums(), np.float64)
         nbr = np.ascontiguousarray(nbr, np.int32)
         if nbr.shape != (self.n_voxels, 27):
             raise ValueError(f"nbr must have shape ({self.n_voxels}, 27), got {nbr.shape}")
-        out = np.zeros((self.n_voxels, 3))
+        out = np.zeros((self.n_voxels, MISFIT_COLUMNS))
         if self.n_voxels:
             window_sums(nbr, sums, out)
         return out

@@ -1,5 +1,5 @@
 """observation.local_noise: the posterior variance judged against the data around each voxel
-(bftaichi.stages.observe.local_misfit). Where the frames agree with each other the correction
+(bftaichi.stages.misfit.local_misfit). Where the frames agree with each other the correction
 is small; where they disagree (here: misregistered frames) sigma grows with the disagreement,
 so it still covers the error; the mean is never touched."""
 
@@ -84,3 +84,44 @@ def test_local_noise_is_deterministic(runs):
     _, again = solved(cfg, list(open_frames(cfg)))
     np.testing.assert_array_equal(again.var, runs["clean", True].var)
     np.testing.assert_array_equal(again.cov, runs["clean", True].cov)
+
+
+def _window(r, y, expected, w):
+    """One window's misfit sums (Observer.misfit_window's columns) of samples with residuals
+    ``r``, distances ``y`` from their pixel's surface, expected squared residuals ``expected``
+    and weights ``w``."""
+    return np.array([[np.sum(w * r * r), np.sum(w * expected), np.sum(w), np.sum(w * r),
+                      np.sum(w * y), np.sum(w * y * y), np.sum(w * r * y)]])
+
+
+def test_surface_excess_leaves_out_the_residuals_slope_but_keeps_their_offset():
+    """Residuals that grow along y (the mean's slope off by 30 %) over an SDF 0.4 mm off at
+    the surface: the excess is that offset's square over the slope's (the surface's offset in
+    distance), not the mean squared residual; with the
+    slope beyond SLOPE_AGREEMENT (the mean flat where the data are not, a sheet seen from two
+    sides) or without a line, the whole excess counts."""
+    from bftaichi.stages.misfit import SLOPE_AGREEMENT, surface_excess
+
+    rng = np.random.default_rng(0)
+    y = rng.uniform(-0.006, 0.006, 400)  # 1.5 voxels of 4 mm either side
+    w = rng.uniform(0.5, 1.0, 400)
+    expected = np.full(400, 1e-7)
+    scatter = rng.normal(0.0, np.sqrt(1e-7), 400)
+    scatter -= np.sum(w * scatter) / np.sum(w)  # no offset of its own
+    r = 0.0004 + 0.3 * y + scatter
+    b2, line = surface_excess(_window(r, y, expected, w))
+    whole = np.sum(w * (r * r - expected)) / np.sum(w)
+    assert line[0]
+    assert whole > 2 * 0.0004 ** 2  # the slope's part would double it
+    # the surface's offset in distance: the SDF's over the mean's slope along the rays, 1 - 0.3
+    assert b2[0] == pytest.approx((0.0004 / 0.7) ** 2, rel=0.15)
+
+    steep = 0.0004 + (SLOPE_AGREEMENT + 0.4) * y + scatter
+    b2, line = surface_excess(_window(steep, y, expected, w))
+    assert not line[0]
+    assert b2[0] == pytest.approx(np.sum(w * (steep ** 2 - expected)) / np.sum(w))
+
+    flat = np.full(400, 0.0)  # every sample at its surface: no line to fit
+    b2, line = surface_excess(_window(r, flat, expected, w))
+    assert not line[0]
+    assert b2[0] == pytest.approx(np.sum(w * (r * r - expected)) / np.sum(w))

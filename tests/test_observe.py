@@ -589,9 +589,10 @@ def test_superpixels_are_planar_blocks():
 def test_misfit_sums_match_a_reference_built_from_the_rows(sphere, count_once):
     """The misfit pass (which looks up only the samples near the surface, and the others only
     until a pixel's share is settled) sums exactly what the rows of the data term give: per
-    corner, a_c s min(r^2, 100 sigma^2), a_c s max(sigma^2 - p, 0.1 sigma^2) and a_c s over the
-    accepted samples with |y| < MISFIT_NEAR voxels; r = y - a . mu, p = sum a_c^2 var_c,
-    sigma^2 the sample's pixel noise, s its share of the pixel."""
+    corner, a_c s min(r^2, 100 sigma^2), a_c s max(sigma^2 - p, 0.1 sigma^2), a_c s, and a_c s
+    times rc, y, y^2 and rc y over the accepted samples with |y| < MISFIT_NEAR voxels; r = y -
+    a . mu, rc = r clipped to +-10 sigma, p = sum a_c^2 var_c, sigma^2 the sample's pixel
+    noise, s its share of the pixel."""
     band, frames = sphere
     rng = np.random.default_rng(3)
     centres = (band.ijk + 0.5) * VOXEL
@@ -600,7 +601,7 @@ def test_misfit_sums_match_a_reference_built_from_the_rows(sphere, count_once):
     ref = sphere_sdf(centres).astype(np.float32)
     obs = band.observer(count_once=count_once, front_m=2 * TRUNC, gate_m=0.5 * TRUNC,
                         reference=ref)
-    expected = np.zeros((len(centres), 3))
+    expected = np.zeros((len(centres), 7))
     for f in frames:
         obs.misfit(f.depth_m, f.K, f.T_W_C, mu, var)
         rows = obs.frame_rows(f.depth_m, f.K, f.T_W_C)
@@ -614,13 +615,18 @@ def test_misfit_sums_match_a_reference_built_from_the_rows(sphere, count_once):
         a, idx = rows["a"][near], rows["idx"][near]
         r = rows["y"][near] - (a * mu[idx]).sum(axis=1)
         p = (a ** 2 * var[idx]).sum(axis=1)
+        rc = np.clip(r, -10 * np.sqrt(sigma2[near]), 10 * np.sqrt(sigma2[near]))
+        y = rows["y"][near]
         terms = (np.minimum(r ** 2, 100 * sigma2[near]),
-                 np.maximum(sigma2[near] - p, 0.1 * sigma2[near]), np.ones(near.sum()))
+                 np.maximum(sigma2[near] - p, 0.1 * sigma2[near]), np.ones(near.sum()),
+                 rc, y, y * y, rc * y)
         for col, t in enumerate(terms):
             np.add.at(expected[:, col], idx.ravel(), (a * (s[near] * t)[:, None]).ravel())
     assert expected[:, 2].sum() > 10  # many near samples were summed
-    # each add is rounded to 2^-24 (voxel^2 for the first two columns): a few units per sum
-    unit = np.array([VOXEL ** 2, VOXEL ** 2, 1.0]) * 2.0 ** -24
+    assert np.abs(expected[:, 6]).sum() > 0  # the residuals' line has something to fit
+    # each add is rounded to 2^-24 of a voxel (^2) unit: a few units per sum
+    unit = np.array([VOXEL ** 2, VOXEL ** 2, 1.0, VOXEL, VOXEL, VOXEL ** 2, VOXEL ** 2]) \
+        * 2.0 ** -24
     np.testing.assert_allclose(obs.misfit_sums(), expected, rtol=1e-6, atol=32 * unit.max())
     assert np.all(np.abs(obs.misfit_sums() - expected) <= 1e-6 * np.abs(expected) + 32 * unit)
 

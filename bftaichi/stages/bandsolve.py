@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 
-from .observe import (FramePicks, estimate_extra_noise, free_space_rows, local_misfit,
-                      make_observer, observe)
+from .misfit import local_misfit
+from .observe import FramePicks, estimate_extra_noise, free_space_rows, make_observer, observe
 from .prior import add_prior
 from .sharednoise import shared_noise_factor
 from .solve import prior_bias, solve_map

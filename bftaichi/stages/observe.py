@@ -16,7 +16,7 @@ from ..errors import ConfigError
 from .pairmodel import fit_extra
 
 __all__ = ["ObservationConfig", "make_observer", "observe", "free_space_rows",
-           "estimate_extra_noise", "local_misfit", "FramePicks"]
+           "estimate_extra_noise", "FramePicks"]
 
 
 @dataclass
@@ -121,7 +121,7 @@ class ObservationConfig:
 
     local_noise: bool = True
     """Judge the noise model against the data around each voxel after the solve
-    (:func:`local_misfit`: a second pass over the frames compares every sample with the
+    (:func:`~.misfit.local_misfit`: a second pass over the frames compares every sample with the
     posterior mean) and add the excess ``b^2`` where they disagree more than the noise model
     explains (thin sheets, occlusion edges, creases finer than a voxel, misregistered frames),
     which does not average down over pixels. That is where the surface errors are. Where the
@@ -253,49 +253,6 @@ def observe(observer, frames, stride: int, free_space=None):
         if free_space is not None:
             free_space.add(frame.depth_m, frame.K, frame.T_W_C)
     return observer.finalize()
-
-
-def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.ndarray,
-                 stride: int) -> tuple[np.ndarray, np.ndarray, dict]:
-    """How well the noise model explains the data around each band voxel.
-
-    Every frame is observed again (same samples and weights as the data term) against the
-    posterior mean; the samples within 1.5 voxels of their pixel's measured surface count
-    (``kernels.dataterm.MISFIT_NEAR``): they fix the zero crossing, where the vertices lie,
-    while farther ones carry the projective distance's own model error. Per voxel, the
-    squared residuals of the pixels reaching it and what the model expects of them (their
-    noise variance less the part the fit absorbs,
-    :meth:`kernels.observe.Observer.misfit_sums`) are summed over the voxel and its 26
-    neighbours (a 3-voxel window: a few pixels per voxel are too few for a variance). Their
-    ratio ``chi2`` (mean squared residual over its expectation) tells:
-
-    - ``chi2 > 1``: the data disagree with each other and with any surface the voxels can hold
-      (thin sheets seen from both sides, occlusion edges, creases finer than a voxel,
-      misregistered frames). The excess ``b^2 = mean r^2 - expected`` does not average down
-      over the pixels: it is a bias of the mean there, added to the variance as it is.
-    - ``chi2 < 1``: the data are quieter than the noise model says; the variance is kept. The
-      ratio is an average over every sample in the window, and the quiet ones are mostly
-      oblique pixels, whose modelled noise is floored (``cos_min``) and whose fitted extra
-      noise is taken as isotropic, while the posterior variance is set mostly by the head-on
-      pixels, which the model gets right; scaling the variance by it made sigma too small
-      (docs/measurements.md).
-
-    A voxel reached by less than one pixel's worth of samples in its window gets ``b = 0``.
-
-    Returns ``(b2, stats)``: (N,) float32 metres^2, and ``voxels`` (with an estimate),
-    ``median_chi2`` (a diagnostic), ``voxels_misfit`` (``b > 0``), ``p90_b_m``.
-    """
-    for frame in frames:
-        observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, var, stride=stride)
-    window = observer.misfit_window(nbr)  # (N, 3) over the 27 voxels around each
-    ok = window[:, 2] >= 1.0
-    b2 = np.zeros(len(mean), np.float64)
-    r2, expected = window[ok, 0] / window[ok, 2], window[ok, 1] / window[ok, 2]
-    b2[ok] = np.maximum(0.0, r2 - expected)
-    stats = {"voxels": int(ok.sum()), "voxels_misfit": int(np.count_nonzero(b2 > 0)),
-             "median_chi2": float(np.median(r2 / expected)) if ok.any() else None,
-             "p90_b_m": float(np.sqrt(np.percentile(b2[ok], 90))) if ok.any() else None}
-    return b2.astype(np.float32), stats
 
 
 class FramePicks:
