@@ -505,14 +505,14 @@ class Observer:
     def misfit(self, depth_m: np.ndarray, K: np.ndarray, T_W_C: np.ndarray, mu: np.ndarray,
                var: np.ndarray, stride: int = 1, sigma_pose_m: float | None = None) -> None:
         """Add one frame's misfit against the band values ``mu`` (N,) (metres; the posterior
-        mean, ``var`` its variance, metres^2) to the sums :meth:`misfit_sums` returns: the same
-        samples and weights as :meth:`integrate`; nothing else changes. Deterministic."""
+        mean, ``var`` its variance, metres^2) to :meth:`misfit_sums`: the samples and weights of
+        :meth:`integrate`; nothing else changes. Deterministic."""
         stride = self._check_stride(stride)
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         mu, var = self._band_fields(mu, var)
         if self._R_acc is None:
-            self._R_acc = zeros_aligned((self.parts, max(self.n_voxels, 1), MISFIT_COLUMNS),
-                                        np.int64)
+            shape = (self.parts, max(self.n_voxels, 1), MISFIT_COLUMNS)
+            self._R_acc = zeros_aligned(shape, np.int64)
         if not self.n_voxels:
             return
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
@@ -529,21 +529,16 @@ class Observer:
         return mu, var
 
     def misfit_sums(self) -> np.ndarray:
-        """(N, 7) float64 sums over the frames given to :meth:`misfit`, per voxel: the squared
-        residuals ``sum_k a_k s_k min(r_k^2, cap sigma_k^2)`` and noise variances ``sum_k a_k
-        s_k sigma_k^2`` (metres^2), the pixels ``sum_k a_k s_k`` (``s_k``: the sample's share of
-        its pixel; the samples within ``MISFIT_NEAR`` voxels of their pixel's surface,
-        :func:`kernels.dataterm.misfit_frame`), so column 0 / column 2 is the mean squared
-        residual of the pixels reaching the voxel and column 1 / column 2 what the model
-        expects of it; then ``sum_k a_k s_k`` times the residual ``r_k`` (clipped as its square
-        is; metres), the sample's distance ``y_k`` from its pixel's surface (metres), ``y_k^2``
-        and ``r_k y_k`` (metres^2): the line the residuals follow across ``y``."""
+        """(N, 7) float64 sums over the frames given to :meth:`misfit`, per voxel, of ``a_k s_k``
+        times ``min(r_k^2, cap sigma_k^2)``, ``sigma_k^2`` (metres^2), 1 (pixels), ``r_k``
+        clipped as its square is, the distance ``y_k`` from the pixel's surface (metres), ``y_k^2``
+        and ``r_k y_k`` (metres^2), over the samples within ``MISFIT_NEAR`` voxels of their
+        pixel's surface (``s_k``: its share of the pixel; :func:`kernels.dataterm.misfit_frame`)."""
         if self._R_acc is None or not self.n_voxels:
             return np.zeros((self.n_voxels, MISFIT_COLUMNS))
         R = self._R_acc.sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
-        h = self.voxel_size
-        R[:, [0, 1, 5, 6]] *= h * h
-        R[:, [3, 4]] *= h
+        R[:, [0, 1, 5, 6]] *= self.voxel_size ** 2
+        R[:, [3, 4]] *= self.voxel_size
         return R
 
     def misfit_window(self, nbr: np.ndarray) -> np.ndarray:
@@ -553,7 +548,7 @@ class Observer:
         nbr = np.ascontiguousarray(nbr, np.int32)
         if nbr.shape != (self.n_voxels, 27):
             raise ValueError(f"nbr must have shape ({self.n_voxels}, 27), got {nbr.shape}")
-        out = np.zeros((self.n_voxels, MISFIT_COLUMNS))
+        out = np.zeros_like(sums)
         if self.n_voxels:
             window_sums(nbr, sums, out)
         return out

@@ -10,6 +10,7 @@ step   module       what
 4      prior        GMRF prior: membrane, curvature, anchors (``[prior]``)
 5      solve        PCG MAP with the free-space active set (``[solver]``)
 6      variance     probe estimate of ``diag(Q^-1)``, blended (``[solver]``)
+6      misfit       the data's excess over the noise model, added (``observation.local_noise``)
 7      surface      marching cubes and vertex sigma (``[mesh]``)
 =====  ===========  =================================================================
 """
