@@ -47,7 +47,11 @@ def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.nd
     window = observer.misfit_window(nbr)  # (N, 7) over the 27 voxels around each
     ok = window[:, 2] >= 1.0
     b2 = np.zeros(len(mean), np.float64)
-    b2[ok], line = surface_excess(window[ok])
+    if window.shape[1] >= 7:
+        b2[ok], line = surface_excess(window[ok])
+    else:  # observation.model = "voxels": no distances to fit a line across (VoxelObserver)
+        w = window[ok, 2]
+        b2[ok], line = np.maximum(0.0, window[ok, 0] / w - window[ok, 1] / w), []
     chi2 = window[ok, 0] / window[ok, 1]
     stats = {"voxels": int(ok.sum()), "voxels_misfit": int(np.count_nonzero(b2 > 0)),
              "voxels_line": int(np.count_nonzero(line)),
