@@ -72,9 +72,11 @@ MISFIT_NEAR = 1.5
 #: Columns of the misfit sums (per voxel, each weighted by ``a_c s``): the squared residual
 #: (capped), the noise variance the model expects of it, the weight itself, and for the line the
 #: residuals follow across the samples' distance ``y`` from their own pixel's surface
-#: (:func:`bftaichi.stages.observe.surface_excess`) the residual (capped alike), ``y``,
-#: ``y^2`` and ``r y``. Voxel units in the kernel (voxel, voxel^2).
+#: (:func:`bftaichi.stages.misfit.surface_excess`) the residual (capped alike), ``y``,
+#: ``y^2`` and ``r y``. Voxel units in the kernel: each column in voxels to the power
+#: :data:`MISFIT_UNITS` (the voxel observation model sums the first three only).
 MISFIT_COLUMNS = 7
+MISFIT_UNITS = (2, 2, 0, 1, 1, 2, 2)
 ROW_ACCEPTED, ROW_DROPPED = 1, 2  # row status in frame_rows (0: no sample, or gated)
 
 

@@ -113,9 +113,9 @@ from .dataterm import (C_SATURATED, COUNT_NAMES, N_COUNTS, N_HALF, N_PARAMS, P_A
                        P_COS_MIN, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
                        P_K, P_M, P_NORMAL_NOISE, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE,
                        P_SHARE, P_SPACING, P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
-                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_COLUMNS, MISFIT_SCALE, estimate_normals,
-                       finalize_stencil, misfit_frame, observe_frame, observe_rows, superpixels,
-                       window_sums)
+                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_COLUMNS, MISFIT_SCALE, MISFIT_UNITS,
+                       estimate_normals, finalize_stencil, misfit_frame, observe_frame,
+                       observe_rows, superpixels, window_sums)
 from .fixedpoint import (FRACTION_BITS, GROWTH_LIMIT, accumulator_parts, growth_bound,
                          saturated_count)
 from .layout import BLOCK_VOXELS
@@ -530,20 +530,20 @@ class Observer:
 
     def misfit_sums(self) -> np.ndarray:
         """(N, 7) float64 sums over the frames given to :meth:`misfit`, per voxel, of ``a_k s_k``
-        times ``min(r_k^2, cap sigma_k^2)``, ``sigma_k^2`` (metres^2), 1 (pixels), ``r_k``
-        clipped as its square is, the distance ``y_k`` from the pixel's surface (metres), ``y_k^2``
-        and ``r_k y_k`` (metres^2), over the samples within ``MISFIT_NEAR`` voxels of their
-        pixel's surface (``s_k``: its share of the pixel; :func:`kernels.dataterm.misfit_frame`)."""
+        times ``min(r_k^2, cap sigma_k^2)``, ``sigma_k^2`` (metres^2), 1, ``r_k`` clipped as its
+        square is, the distance ``y_k`` from the pixel's surface (metres), ``y_k^2`` and ``r_k
+        y_k`` (metres^2), over the samples within ``MISFIT_NEAR`` voxels of it (``s_k``: its share
+        of the pixel; :func:`kernels.dataterm.misfit_frame`). The voxel model: the first three."""
         if self._R_acc is None or not self.n_voxels:
             return np.zeros((self.n_voxels, MISFIT_COLUMNS))
         R = self._R_acc.sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
-        R[:, [0, 1, 5, 6]] *= self.voxel_size ** 2
-        R[:, [3, 4]] *= self.voxel_size
+        for c, power in enumerate(MISFIT_UNITS[:R.shape[1]]):  # to metres
+            R[:, c] *= self.voxel_size ** power
         return R
 
     def misfit_window(self, nbr: np.ndarray) -> np.ndarray:
-        """:meth:`misfit_sums` summed over each voxel's 27-point window (N, 7) float64, the
-        voxels ``nbr`` (N, 27) int32 names (-1: outside the band). One kernel; deterministic."""
+        """:meth:`misfit_sums` summed over each voxel's 27-point window (N, 7 or 3) float64,
+        ``nbr`` (N, 27) int32 naming the voxels (-1: outside the band). One kernel."""
         sums = np.ascontiguousarray(self.misfit_sums(), np.float64)
         nbr = np.ascontiguousarray(nbr, np.int32)
         if nbr.shape != (self.n_voxels, 27):

@@ -458,16 +458,6 @@ class VoxelObserver(Observer):
         if self.n_voxels:
             self._run(depth_m, K, T_W_C, sigma_pose_m, mu, var, self._R_acc[0], _MISFIT)
 
-    def misfit_sums(self) -> np.ndarray:
-        """(N, 3) float64: the first three columns of :meth:`Observer.misfit_sums` (squared
-        residuals, their expectation, pixels). One observation per voxel has no distance from
-        its pixel's surface to fit a line across, so the local noise takes the whole excess."""
-        if self._R_acc is None or not self.n_voxels:
-            return np.zeros((self.n_voxels, 3))
-        R = self._R_acc.sum(axis=0)[:self.n_voxels] / MISFIT_SCALE
-        R[:, :2] *= self.voxel_size ** 2
-        return R
-
     def information(self, depth_m, K, T_W_C, stride: int = 1, sigma_pose_m=None) -> np.ndarray:
         """(N,) the diagonal data term of one frame alone (1/metre^2), accumulating nothing."""
         D = np.zeros((1, max(self.n_voxels, 1)), np.int64)

@@ -41,9 +41,7 @@ def main(argv=None) -> int:
 
     import suite
     import bftaichi as bf
-    import bftaichi.stages.bandsolve as bandsolve
     from bftaichi.evaluation.metrics import vertex_errors
-    from bftaichi.formats.synthetic import SyntheticDataset
     from bftaichi.geometry import mesh_in_local
 
     if args.mesh.endswith(".toml"):
@@ -57,20 +55,7 @@ def main(argv=None) -> int:
     else:
         cfg = bf.load_config(None, [*suite.case_sets(args.mesh, args.condition, args.data),
                                     *args.sets])
-    seen = {}
-    local_misfit = bandsolve.local_misfit
-
-    def spy(observer, frames, mean, var, nbr, stride):  # the variance before the local noise
-        b2, stats = local_misfit(observer, frames, mean, var, nbr, stride)
-        seen.update(var0=np.array(var, np.float64), b2=b2, chi2=stats["median_chi2"])
-        return b2, stats
-
-    bandsolve.local_misfit = spy
-    frames = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)
-    recon = bf.Reconstructor(cfg)
-    for f in frames:
-        recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
-    post = recon.solve()
+    frames, post, seen = solve_seeing_misfit(cfg)
     mesh = post.extract_mesh(local=True)
     gt = mesh_in_local(frames.gt_mesh, post.origin)
     err = vertex_errors(mesh.vertices, gt)
@@ -102,6 +87,35 @@ def main(argv=None) -> int:
     print(f"  fitted noise: extra {post.sigma_extra_m * mm:.3f} mm, shared {post.sigma_corr_m * mm:.3f} mm")
     tail(mesh, err, sigma, gt, cfg.tsdf.voxel_size_m)
     return 0
+
+
+def solve_seeing_misfit(cfg) -> tuple:
+    """``(frames, post, seen)``: a synthetic scene's frames and posterior, solved in-process
+    with :func:`bftaichi.stages.misfit.local_misfit` watched: ``seen`` holds ``var0`` (the
+    variance before the local noise, (N,) float64), its ``b2`` and ``chi2`` (the median), empty
+    when ``observation.local_noise`` is off."""
+    import bftaichi as bf
+    import bftaichi.stages.bandsolve as bandsolve
+    from bftaichi.formats.synthetic import SyntheticDataset
+
+    seen = {}
+    local_misfit = bandsolve.local_misfit
+
+    def spy(observer, frames, mean, var, nbr, stride):  # the variance before the local noise
+        b2, stats = local_misfit(observer, frames, mean, var, nbr, stride)
+        seen.update(var0=np.array(var, np.float64), b2=b2, chi2=stats["median_chi2"])
+        return b2, stats
+
+    bandsolve.local_misfit = spy
+    try:
+        frames = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)
+        recon = bf.Reconstructor(cfg)
+        for f in frames:
+            recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
+        post = recon.solve()
+    finally:
+        bandsolve.local_misfit = local_misfit
+    return frames, post, seen
 
 
 def thin_parts(vertices: np.ndarray, gt, radius_m: float, n_samples: int = 400_000) -> np.ndarray:

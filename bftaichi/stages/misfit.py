@@ -11,7 +11,7 @@ __all__ = ["local_misfit", "surface_excess", "SLOPE_AGREEMENT"]
 
 
 def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.ndarray,
-                 stride: int) -> tuple[np.ndarray, np.ndarray, dict]:
+                 stride: int) -> tuple[np.ndarray, dict]:
     """How well the noise model explains the data around each band voxel.
 
     Every frame is observed again (same samples and weights as the data term) against the
@@ -44,7 +44,7 @@ def local_misfit(observer, frames, mean: np.ndarray, var: np.ndarray, nbr: np.nd
     """
     for frame in frames:
         observer.misfit(frame.depth_m, frame.K, frame.T_W_C, mean, var, stride=stride)
-    window = observer.misfit_window(nbr)  # (N, 7) over the 27 voxels around each
+    window = observer.misfit_window(nbr)  # (N, 7), or (N, 3), over the 27 voxels around each
     ok = window[:, 2] >= 1.0
     b2 = np.zeros(len(mean), np.float64)
     if window.shape[1] >= 7:

@@ -3,8 +3,8 @@ surface (issue 15; docs/measurements.md, "The misfit at the surface: the residua
 out").
 
 For suite cases (``tools/suite.py``'s meshes and capture conditions), the posterior is solved
-in-process with ``local_misfit`` spied on (the variance before the local noise, ``var0``, and
-``b^2``); at the voxels within a voxel of the mean's surface the mean's error is the exact
+in-process with ``local_misfit`` watched (``tools/sigma_breakdown.py``: the variance before the
+local noise, ``var0``, and ``b^2``); at the voxels within a voxel of the mean's surface the mean's error is the exact
 signed distance of the voxel centre to the true mesh (libigl) minus the mean. Printed: the
 coverage of that error by ``sqrt(var0)`` and by the final sigma, then, by bins of ``b^2 /
 var0``, the mean squared error over ``var0`` against the mean ``b^2 / var0``::
@@ -24,30 +24,13 @@ import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 def run(mesh: str, condition: str, data: Path) -> None:
     import igl
     import suite
+    from sigma_breakdown import solve_seeing_misfit
 
     import bftaichi as bf
-    import bftaichi.stages.bandsolve as bandsolve
-    from bftaichi.formats.synthetic import SyntheticDataset
     from bftaichi.geometry import mesh_in_local
 
     cfg = bf.load_config(None, suite.case_sets(mesh, condition, data))
-    seen = {}
-    original = bandsolve.local_misfit
-
-    def spy(observer, frames, mean, var, nbr, stride):
-        b2, stats = original(observer, frames, mean, var, nbr, stride)
-        seen.update(var0=np.array(var, np.float64), b2=np.array(b2, np.float64))
-        return b2, stats
-
-    bandsolve.local_misfit = spy
-    try:
-        frames = SyntheticDataset(cfg.synthetic, cfg.scene.depth_min_m, cfg.scene.depth_max_m)
-        recon = bf.Reconstructor(cfg)
-        for f in frames:
-            recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
-        post = recon.solve()
-    finally:
-        bandsolve.local_misfit = original
+    frames, post, seen = solve_seeing_misfit(cfg)
     h = cfg.tsdf.voxel_size_m
     gt = mesh_in_local(frames.gt_mesh, post.origin)
     near = np.abs(post.mean) < h
@@ -55,7 +38,8 @@ def run(mesh: str, condition: str, data: Path) -> None:
     sd = igl.signed_distance(centres, np.asarray(gt.vertices, np.float64),
                              np.asarray(gt.faces, np.int64))[0]
     e2 = (post.mean[near] - sd) ** 2
-    v0, b2, vf = seen["var0"][near], seen["b2"][near], post.var[near].astype(np.float64)
+    v0, b2 = seen["var0"][near], seen["b2"][near].astype(np.float64)
+    vf = post.var[near].astype(np.float64)
     print(f"{mesh}/{condition}: {int(near.sum())} voxels within a voxel of the mean's surface")
     print(f"  mean error^2 {e2.mean() * 1e6:.4f} mm^2; mean var0 {v0.mean() * 1e6:.4f}, "
           f"b^2 {b2.mean() * 1e6:.4f}, final variance {vf.mean() * 1e6:.4f}")
