@@ -14,7 +14,7 @@ from .funcs import (block_is_planar, block_mean_depth, block_row, corner, floor_
                     trilinear)
 from .fixedpoint import fixed_point, part_sum, saturated_entries
 from .layout import BLOCK, CENTRE
-from .lookup import SAMPLE_ACCEPTED, SAMPLE_GATED, band_index, look_up_sample
+from .lookup import BLOCK_CACHE, SAMPLE_ACCEPTED, SAMPLE_GATED, band_index, look_up_sample
 from .stencil import first_chunk, virtual_iterations
 
 N_HALF = 27 - CENTRE  # accumulated stencil columns: offsets o = 13..26
@@ -164,15 +164,16 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                  block_hash: ti.template(), block_table: ti.template(), ref: ti.template(),
                  stride: ti.i32, m: ti.i32, mf: ti.i32, counts: ti.template(),
                  scratch: ti.template(), blocks: ti.template(), sink: ti.template(),
-                 mode: ti.template(), part: ti.i32):
+                 mode: ti.template(), base: ti.i32):
     """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5) where ``mask`` is 1
     (``depth``: the frame or a level of its super-pixel pyramid, ``prm`` that level's): each
-    pixel counts its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` (copy
-    ``part``, this thread's: plain int64 adds), or their diagonal ``w a_c^2`` to ``(D_acc,)``
-    (MODE_DIAGONAL), or (MODE_ROWS) writes each sample to ``(row_idx, row_a, row_y, row_w,
-    row_z, row_status)`` at row ``(vs ceil(W / stride) + u / stride) (mf + m + 1) + j + mf``
+    pixel counts its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` (this
+    thread's copy, the voxels ``base ..`` of the flat accumulators: plain int64 adds), or their
+    diagonal ``w a_c^2`` to ``(D_acc,)`` (MODE_DIAGONAL), or (MODE_ROWS) writes each sample to
+    ``(row_idx, row_a, row_y, row_w, row_z, row_status)`` at row ``(vs ceil(W / stride) + u / stride) (mf + m + 1) + j + mf``
     (MODE_MISFIT: :func:`misfit_frame`). Counters to ``counts[vs]``; ``scratch`` (rows, mf +
-    m + 1, 8): the corners of the pixel's samples, ``blocks`` (.., 11) the block cache."""
+    m + 1, 8): the corners of the pixel's samples, ``blocks`` (.., BLOCK_CACHE) the block
+    cache, both flat (:func:`kernels.lookup.look_up_sample`)."""
     H, W = depth.shape[0], depth.shape[1]
     n_us = (W + stride - 1) // stride
     M = ti.Matrix([[prm[P_M + 3 * r + c] for c in ti.static(range(3))]
@@ -184,8 +185,9 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
     gate = prm[P_GATE]
     v = vs * stride
     n_valid, n_used, n_acc_row, n_drop, n_fb, n_gate = 0, 0, 0, 0, 0, 0
+    row = vs * (mf + m + 1) + mf  # the slot of sample j is row + j
     for jj in range(mf + m + 1):
-        blocks[vs, jj, 0] = 1 << 30  # no block has this coordinate: empty cache
+        blocks[(row - mf + jj) * BLOCK_CACHE] = 1 << 30  # no block has this coordinate: empty
     pixels = ti.cast(prm[P_PIXELS], ti.i32)
     for us in range(n_us):
         u = us * stride
@@ -230,7 +232,8 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                             elif near or ti.cast(n_acc, ti.f64) >= prm[P_SHARE]:
                                 look = 0
                     if look:
-                        status = look_up_sample(vs, j, mf, z, o, m_ray, n_dot_ray, spacing, gate,
+                        status = look_up_sample(row + j, j == -mf, z, o, m_ray, n_dot_ray,
+                                                ti.cast(j, ti.f64) * spacing * n_dot_ray, gate,
                                                 block_hash, block_table, ref, scratch, blocks)
                         if status == SAMPLE_GATED:
                             n_gate += 1
@@ -258,7 +261,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                     c0 = floor_i32(g)
                     a = trilinear(g - ti.cast(c0, ti.f64))
                     y = delta * n_dot_ray  # <n, x - p>, x - p = delta K^-1 (u, v, 1)
-                    idx = ti.Vector([scratch[vs, j + mf, c] for c in ti.static(range(8))])
+                    idx = ti.Vector([scratch[(row + j) * 8 + c] for c in ti.static(range(8))])
                     accepted = idx[7] >= 0
                     if ti.static(mode == MODE_ROWS):
                         row_idx, row_a, row_y, row_w, row_z, row_status = ti.static(
@@ -300,31 +303,32 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                             for c in ti.static(range(8)):
                                 sa = a[c] * share * MISFIT_SCALE
                                 # this thread's copy: plain adds (`+=` would be atomic)
-                                i = idx[c]
-                                R_acc[part, i, 0] = R_acc[part, i, 0] + fixed_point(sa * r2)
-                                R_acc[part, i, 1] = R_acc[part, i, 1] + fixed_point(sa * v2)
-                                R_acc[part, i, 2] = R_acc[part, i, 2] + fixed_point(sa)
-                                R_acc[part, i, 3] = R_acc[part, i, 3] + fixed_point(sa * rv)
-                                R_acc[part, i, 4] = R_acc[part, i, 4] + fixed_point(sa * yv)
-                                R_acc[part, i, 5] = R_acc[part, i, 5] + fixed_point(sa * yv * yv)
-                                R_acc[part, i, 6] = R_acc[part, i, 6] + fixed_point(sa * rv * yv)
+                                e = (base + idx[c]) * MISFIT_COLUMNS
+                                R_acc[e] = R_acc[e] + fixed_point(sa * r2)
+                                R_acc[e + 1] = R_acc[e + 1] + fixed_point(sa * v2)
+                                R_acc[e + 2] = R_acc[e + 2] + fixed_point(sa)
+                                R_acc[e + 3] = R_acc[e + 3] + fixed_point(sa * rv)
+                                R_acc[e + 4] = R_acc[e + 4] + fixed_point(sa * yv)
+                                R_acc[e + 5] = R_acc[e + 5] + fixed_point(sa * yv * yv)
+                                R_acc[e + 6] = R_acc[e + 6] + fixed_point(sa * rv * yv)
                     elif ti.static(mode == MODE_DIAGONAL):  # (A^T W A)_ii alone, as below
                         if accepted:
                             D_acc = ti.static(sink[0])
                             for c in ti.static(range(8)):
-                                D_acc[part, idx[c]] = D_acc[part, idx[c]] + fixed_point(
-                                    ws * a[c] * a[c])
+                                e = base + idx[c]
+                                D_acc[e] = D_acc[e] + fixed_point(ws * a[c] * a[c])
                     elif accepted:
                         S_acc, h_acc = ti.static(sink[0], sink[1])
                         for ca in ti.static(range(8)):
                             wa = ws * a[ca]
+                            e = base + idx[ca]  # flat: the entry's address computed once
+                            r0 = e * N_HALF
                             for cb in ti.static(range(ca, 8)):
                                 col = ti.static(column(ca, cb))
                                 # this thread's copy: plain adds, no atomic; no overflow
                                 # test either (Observer.integrate bounds the growth)
-                                S_acc[part, idx[ca], col] = S_acc[part, idx[ca], col] + \
-                                    fixed_point(wa * a[cb])
-                            h_acc[part, idx[ca]] = h_acc[part, idx[ca]] + fixed_point(wa * y)
+                                S_acc[r0 + col] = S_acc[r0 + col] + fixed_point(wa * a[cb])
+                            h_acc[e] = h_acc[e] + fixed_point(wa * y)
             if n_acc > 0:
                 n_used += pixels
                 n_acc_row += n_acc
@@ -343,13 +347,17 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
                   prm: _NDA(dtype=ti.f64, ndim=1),
                    block_hash: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                    ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
-                   S_acc: _NDA(dtype=ti.i64, ndim=3), h_acc: _NDA(dtype=ti.i64, ndim=2),
-                   counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
-                   blocks: _NDA(dtype=ti.i32, ndim=3)):
-    """One frame into the accumulators ``S_acc``/``h_acc``, parallel over strided pixel rows
-    (:func:`observe_row`), each thread into its own part (rows ``part, part + n_parts, ...``):
-    integer adds only, bitwise reproducible whatever the thread schedule."""
-    n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, S_acc.shape[0]
+                   n_parts: ti.i32, S_acc: _NDA(dtype=ti.i64, ndim=1),
+                   h_acc: _NDA(dtype=ti.i64, ndim=1),
+                   counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=1),
+                   blocks: _NDA(dtype=ti.i32, ndim=1)):
+    """One frame into the accumulators ``S_acc``/``h_acc`` ((parts, N, 14) and (parts, N),
+    flattened: a flat index is computed once per entry, where a 3-d index reloaded the shape
+    after every add), parallel over strided pixel rows (:func:`observe_row`), each thread into
+    its own part (rows ``part, part + n_parts, ...``): integer adds only, bitwise reproducible
+    whatever the thread schedule."""
+    n_rows = (depth.shape[0] + stride - 1) // stride
+    n_vox = h_acc.shape[0] // n_parts
     # the parts dealt out like the stencil kernels' chunks (kernels.stencil.first_chunk): each
     # part goes to exactly one virtual iteration (no race) and the parts to different threads
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))
@@ -359,7 +367,7 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
             for q in range((n_rows - part + n_parts - 1) // n_parts):  # rows p, p + n_parts, ...
                 observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
                             stride, m, mf, counts, scratch, blocks, (S_acc, h_acc),
-                            MODE_ACCUMULATE, part)
+                            MODE_ACCUMULATE, part * n_vox)
 
 
 @ti.kernel
@@ -367,8 +375,8 @@ def observe_rows(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
                  prm: _NDA(dtype=ti.f64, ndim=1),
                   block_hash: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                   ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
-                  counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
-                  blocks: _NDA(dtype=ti.i32, ndim=3), row_idx: _NDA(dtype=ti.i32, ndim=2),
+                  counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=1),
+                  blocks: _NDA(dtype=ti.i32, ndim=1), row_idx: _NDA(dtype=ti.i32, ndim=2),
                   row_a: _NDA(dtype=ti.f64, ndim=2), row_y: _NDA(dtype=ti.f64, ndim=1),
                   row_w: _NDA(dtype=ti.f64, ndim=1), row_z: _NDA(dtype=ti.f64, ndim=1),
                   row_status: _NDA(dtype=ti.i32, ndim=1)):
@@ -523,9 +531,11 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
                  block_hash: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                  ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
                  mu: _NDA(dtype=ti.f32, ndim=1), var: _NDA(dtype=ti.f32, ndim=1),
-                 R_acc: _NDA(dtype=ti.i64, ndim=3), counts: _NDA(dtype=ti.i64, ndim=2),
-                 scratch: _NDA(dtype=ti.i32, ndim=3), blocks: _NDA(dtype=ti.i32, ndim=3)):
-    """One frame's misfit against the band values ``mu`` into ``R_acc`` (N, MISFIT_COLUMNS),
+                 n_parts: ti.i32, R_acc: _NDA(dtype=ti.i64, ndim=1),
+                 counts: _NDA(dtype=ti.i64, ndim=2),
+                 scratch: _NDA(dtype=ti.i32, ndim=1), blocks: _NDA(dtype=ti.i32, ndim=1)):
+    """One frame's misfit against the band values ``mu`` into ``R_acc`` ((parts, N,
+    MISFIT_COLUMNS), flattened as in :func:`observe_frame`),
     per voxel, in 1 / MISFIT_SCALE: ``sum_k a_k s_k min(r_k^2, MISFIT_CAP sigma_k^2)``, ``sum_k
     a_k s_k (sigma_k^2 - p_k)`` (voxel^2; ``p_k = sum_c a_c^2 var_c`` <= 0.9 sigma_k^2, the part
     the fit absorbs), ``sum_k a_k s_k``, and ``sum_k a_k s_k`` times ``rc_k``, ``y_k``, ``y_k^2``
@@ -533,7 +543,8 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
     its square is), over the accepted samples k within ``MISFIT_NEAR`` voxels of their pixel's
     surface (as :func:`observe_frame`): ``r_k = y_k - a_k . mu``, ``sigma_k`` its noise, ``s_k =
     w_k sigma_k^2`` its share of its pixel. Per-thread integer adds."""
-    n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, R_acc.shape[0]
+    n_rows = (depth.shape[0] + stride - 1) // stride
+    n_vox = R_acc.shape[0] // (n_parts * MISFIT_COLUMNS)
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))  # as in observe_frame
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
@@ -541,4 +552,4 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
             for q in range((n_rows - part + n_parts - 1) // n_parts):
                 observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
                             stride, m, mf, counts, scratch, blocks, (mu, var, R_acc),
-                            MODE_MISFIT, part)
+                            MODE_MISFIT, part * n_vox)

@@ -20,13 +20,16 @@ _NDA = ti.types.ndarray
 def information_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
                       prm: _NDA(dtype=ti.f64, ndim=1), block_hash: _NDA(dtype=ti.i64, ndim=1),
                       block_table: _NDA(dtype=ti.i32, ndim=2), ref: _NDA(dtype=ti.f32, ndim=1),
-                      stride: ti.i32, m: ti.i32, mf: ti.i32, D_acc: _NDA(dtype=ti.i64, ndim=2),
-                      counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=3),
-                      blocks: _NDA(dtype=ti.i32, ndim=3)):
-    """One frame's ``w a_c^2`` into ``D_acc`` (parts, N) int64, each thread into its own part
+                      stride: ti.i32, m: ti.i32, mf: ti.i32, n_parts: ti.i32,
+                      D_acc: _NDA(dtype=ti.i64, ndim=1),
+                      counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=1),
+                      blocks: _NDA(dtype=ti.i32, ndim=1)):
+    """One frame's ``w a_c^2`` into ``D_acc`` ((parts, N) int64, flattened as in
+    :func:`kernels.dataterm.observe_frame`), each thread into its own part
     (rows dealt out as in :func:`kernels.dataterm.observe_frame`). Integer adds without
     atomics: deterministic."""
-    n_rows, n_parts = (depth.shape[0] + stride - 1) // stride, D_acc.shape[0]
+    n_rows = (depth.shape[0] + stride - 1) // stride
+    n_vox = D_acc.shape[0] // n_parts
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
@@ -34,4 +37,4 @@ def information_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8,
             for q in range((n_rows - part + n_parts - 1) // n_parts):
                 observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
                             stride, m, mf, counts, scratch, blocks, (D_acc,), MODE_DIAGONAL,
-                            part)
+                            part * n_vox)

@@ -121,37 +121,43 @@ def band_ijk_from_table(block_keys: np.ndarray, block_table: np.ndarray,
 
 SAMPLE_DROPPED, SAMPLE_ACCEPTED, SAMPLE_GATED = 0, 1, 2  # what look_up_sample finds
 UNSEARCHED = -2  # block cache: row not looked up yet (-1: looked up, not in the band)
+BLOCK_CACHE = 11  # block cache entry of a sample: its block (3), the rows of the 8 it reaches
 
 
 @ti.func
-def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot_ray: ti.f64,
-                   spacing: ti.f64, gate: ti.f64, block_hash: ti.template(),
+def look_up_sample(slot: ti.i32, first: ti.i32, z: ti.f64, o, m_ray, n_dot_ray: ti.f64,
+                   y: ti.f64, gate: ti.f64, block_hash: ti.template(),
                    block_table: ti.template(), ref: ti.template(), scratch: ti.template(),
                    blocks: ti.template()) -> ti.i32:
-    """Sample j (depth ``z`` > 0) of pixel row ``vs``: its cell's corners (band indices) into
-    ``scratch[vs, j + mf]``, corner 7 -1 where one is outside the band, -2 where the side gate
-    drops it (kernels.observe, steps 3 and 3b), through the row's block cache ``blocks[vs, j +
-    mf]``. Returns SAMPLE_ACCEPTED, SAMPLE_DROPPED or SAMPLE_GATED."""
+    """A sample (depth ``z`` > 0, distance ``y`` from its pixel's surface) in its pixel row's
+    ``slot`` (row ``vs``, sample ``j``: ``vs (mf + m + 1) + j + mf``; ``first``: j = -mf): its
+    cell's corners (band indices) into ``scratch[8 slot ..]``, corner 7 -1 where one is outside
+    the band, -2 where the side gate drops it (kernels.observe, steps 3 and 3b), through the
+    row's block cache ``blocks[BLOCK_CACHE slot ..]``. ``scratch`` and ``blocks`` are flat
+    ((rows, samples, 8) and (rows, samples, BLOCK_CACHE) int32: a flat index is computed once,
+    where a 3-d one reloaded the shape after every store). Returns SAMPLE_ACCEPTED,
+    SAMPLE_DROPPED or SAMPLE_GATED."""
     c0 = floor_i32(o + z * m_ray)
     b = ti.Vector([c0[0] // BLOCK, c0[1] // BLOCK, c0[2] // BLOCK])
     # block cache per sample index j: sample j of the next pixels in the row is mostly in the
     # same block (8 voxels = many pixels); else sample j - 1's entry, which this ray mostly
     # just filled. Block b + s (s in {0, 1}^3) is searched only when a cell first reaches it,
     # from b's last voxel layer along s's axes (UNSEARCHED till then)
-    if (b != ti.Vector([blocks[vs, j + mf, t] for t in ti.static(range(3))])).any():
-        jp = ti.max(j + mf - 1, 0)  # sample j - 1's entry (when j > -mf)
-        prev = ti.Vector([blocks[vs, jp, t] for t in ti.static(range(3))])
-        same = j > -mf and (b == prev).all()
+    e = slot * BLOCK_CACHE
+    if (b != ti.Vector([blocks[e + t] for t in ti.static(range(3))])).any():
+        ep = ti.select(first, e, e - BLOCK_CACHE)  # sample j - 1's entry (when j > -mf)
+        prev = ti.Vector([blocks[ep + t] for t in ti.static(range(3))])
+        same = not first and (b == prev).all()
         for t in ti.static(range(3)):
-            blocks[vs, j + mf, t] = b[t]
-        for t in ti.static(range(3, 11)):
-            blocks[vs, j + mf, t] = ti.select(same, blocks[vs, jp, t], UNSEARCHED)
+            blocks[e + t] = b[t]
+        for t in ti.static(range(3, BLOCK_CACHE)):
+            blocks[e + t] = ti.select(same, blocks[ep + t], UNSEARCHED)
     for t in range(8):
-        if reaches_block(c0, b, t) and blocks[vs, j + mf, 3 + t] == UNSEARCHED:
+        if reaches_block(c0, b, t) and blocks[e + 3 + t] == UNSEARCHED:
             nb = b + corner_offset(t)
-            blocks[vs, j + mf, 3 + t] = hashed_block_row(block_hash, nb[0], nb[1], nb[2])
+            blocks[e + 3 + t] = hashed_block_row(block_hash, nb[0], nb[1], nb[2])
     idx = cell_corners(block_table, c0, b, ti.Vector(
-        [blocks[vs, j + mf, 3 + t] for t in ti.static(range(8))]))
+        [blocks[e + 3 + t] for t in ti.static(range(8))]))
     gated = 0
     if idx[7] >= 0 and gate > 0:
         # step 3b: the reference SDF interpolated at the sample must not put it on the other
@@ -161,15 +167,14 @@ def look_up_sample(vs: ti.i32, j: ti.i32, mf: ti.i32, z: ti.f64, o, m_ray, n_dot
         t_ref = ti.f64(0.0)
         for c in ti.static(range(8)):
             t_ref += a[c] * ti.cast(ref[idx[c]], ti.f64)
-        y = ti.cast(j, ti.f64) * spacing * n_dot_ray
         # NaN (a corner without reference) fails both tests: kept
         if (y < 0 and t_ref > gate) or (y > 0 and t_ref < -gate):
             gated = 1
     for c in ti.static(range(8)):
-        scratch[vs, j + mf, c] = idx[c]
+        scratch[slot * 8 + c] = idx[c]
     status = SAMPLE_DROPPED
     if gated:
-        scratch[vs, j + mf, 7] = -2
+        scratch[slot * 8 + 7] = -2
         status = SAMPLE_GATED
     elif idx[7] >= 0:
         status = SAMPLE_ACCEPTED

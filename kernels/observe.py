@@ -92,7 +92,8 @@ around at 2^63 unseen (for frames under ~2^30 / (mf + m + 1) pixels): a saturati
 bitwise identical whatever the thread schedule and thread count (and the frames' order).
 
 Layout of the accumulators: ``S_acc`` (parts, N, 14) int64, column ``o - 13`` for ``o =
-13..26``; ``h_acc`` (parts, N) int64. Per-row counters: ``counts`` (rows, N_COUNTS) int64.
+13..26``; ``h_acc`` (parts, N) int64; the frame kernels take flat views (docs/measurements.md,
+"Flat indices in the frame kernels"). Per-row counters: ``counts`` (rows, N_COUNTS) int64.
 
 Cost (one launch per pyramid level, each thread taking every parts-th pixel row): per pixel a
 normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 adds (the upper
@@ -109,17 +110,17 @@ import math
 import numpy as np
 import taichi as ti
 
-from .dataterm import (C_SATURATED, COUNT_NAMES, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B,
-                       P_COS_MIN, P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP,
-                       P_K, P_M, P_NORMAL_NOISE, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE,
-                       P_SHARE, P_SPACING, P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0,
-                       ROW_ACCEPTED, ROW_DROPPED, MISFIT_COLUMNS, MISFIT_SCALE, MISFIT_UNITS,
-                       estimate_normals, finalize_stencil, misfit_frame, observe_frame,
-                       observe_rows, superpixels, window_sums)
+from .dataterm import (C_SATURATED, COUNT_NAMES, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B, P_COS_MIN,
+                       P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP, P_K, P_M,
+                       P_NORMAL_NOISE, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
+                       P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED,
+                       MISFIT_COLUMNS, MISFIT_SCALE, MISFIT_UNITS, estimate_normals,
+                       finalize_stencil, misfit_frame, observe_frame, observe_rows, superpixels,
+                       window_sums)
 from .fixedpoint import (FRACTION_BITS, GROWTH_LIMIT, accumulator_parts, growth_bound,
                          saturated_count)
 from .layout import BLOCK_VOXELS
-from .lookup import band_ijk_from_table, build_block_hash
+from .lookup import BLOCK_CACHE, band_ijk_from_table, build_block_hash
 from .stencil import free_compile_arguments, zeros_aligned
 
 def _pinhole_inverse(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
@@ -392,19 +393,17 @@ class Observer:
         return out
 
     def _level_runs(self, depth: np.ndarray, prm: np.ndarray, stride: int):
-        """Per level of :meth:`_levels`, what a frame kernel takes besides the band:
-        ``(image, mask, params, counts, scratch)``, ``counts`` zeroed (strided rows,
-        N_COUNTS) and ``scratch`` the reused per-row arrays of :meth:`_scratch`."""
+        """Per level of :meth:`_levels`, what a frame kernel takes besides the band: ``(image,
+        mask, params, counts, scratch)``, ``counts`` zeroed (strided rows, N_COUNTS)."""
         for image, mask, prm_l, _ in self._levels(depth, prm, stride):
             n_vs = (image.shape[0] + stride - 1) // stride
             yield image, mask, prm_l, np.zeros((n_vs, N_COUNTS), np.int64), self._scratch(n_vs)
 
     def _scratch(self, n_rows: int) -> tuple:
-        """Per-row scratch arrays of the frame kernel (see observe_frame), reused."""
-        if self._scratch_buf is None or self._scratch_buf[0].shape[0] < n_rows:
-            n_s = self.mf + self.m + 1
-            self._scratch_buf = (np.empty((n_rows, n_s, 8), np.int32),
-                                 np.empty((n_rows, n_s, 11), np.int32))
+        """Per-row scratch arrays of the frame kernel (see observe_frame), flat, reused."""
+        slots = n_rows * (self.mf + self.m + 1)
+        if self._scratch_buf is None or len(self._scratch_buf[0]) < 8 * slots:
+            self._scratch_buf = tuple(np.empty(k * slots, np.int32) for k in (8, BLOCK_CACHE))
         return self._scratch_buf
 
     @staticmethod
@@ -435,8 +434,8 @@ class Observer:
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
             if self.n_voxels:
                 observe_frame(image, mask, prm_l, self.block_hash, self.block_table,
-                              self.reference, stride, self.m, self.mf, S_acc, h_acc,
-                              counts, *scratch)
+                              self.reference, stride, self.m, self.mf, self.parts,
+                              S_acc.reshape(-1), h_acc.reshape(-1), counts, *scratch)
             frame += counts.sum(axis=0)
         self.counts += frame
         self.frames += 1
@@ -517,7 +516,8 @@ class Observer:
             return
         for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
             misfit_frame(image, mask, prm_l, self.block_hash, self.block_table, self.reference,
-                         stride, self.m, self.mf, mu, var, self._R_acc, counts, *scratch)
+                         stride, self.m, self.mf, mu, var, self.parts, self._R_acc.reshape(-1),
+                         counts, *scratch)
 
     def _band_fields(self, mu, var) -> tuple[np.ndarray, np.ndarray]:
         """``mu``, ``var`` as (N,) float32 (ValueError naming their shapes otherwise)."""
@@ -567,8 +567,8 @@ class Observer:
         if self.n_voxels:
             for image, mask, prm_l, counts, scratch in self._level_runs(depth, prm, stride):
                 information_frame(image, mask, prm_l, self.block_hash, self.block_table,
-                                  self.reference, stride, self.m, self.mf, D_acc, counts,
-                                  *scratch)
+                                  self.reference, stride, self.m, self.mf, self.parts,
+                                  D_acc.reshape(-1), counts, *scratch)
         return D_acc.sum(axis=0)[:self.n_voxels] / self.fixed_scale
 
     # -- result ------------------------------------------------------------------------------
