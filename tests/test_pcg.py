@@ -485,3 +485,42 @@ def test_bench_core_runs_and_reports(tmp_path):
     rep = json.loads(out_json.read_text())
     assert rep["pcg"]["converged"] and rep["band_voxels"] > 15000
     assert rep["ns_per_voxel"]["stencil_k16"] > 0 and rep["ratio_f32"] > 0
+
+
+def test_compile_arguments_are_freed_and_later_calls_collect_nothing(monkeypatch):
+    """Taichi 1.7 keeps a compiling call's arrays in a reference cycle:
+    ``free_compile_arguments`` frees them, and once nothing was compiled since, it runs no
+    garbage collection (a solve repeated in one process, a scan step, pays none)."""
+    import weakref
+
+    import taichi as ti
+
+    from kernels import stencil
+
+    @ti.kernel
+    def fill(a: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+        for i in a:
+            a[i] = 1.0
+
+    big = np.zeros(100_000, np.float32)
+    alive = weakref.ref(big)
+    fill(big)  # compiles: the cycle holds big
+    del big
+    stencil.free_compile_arguments()
+    assert alive() is None
+    collections = []
+    real = stencil.gc.collect
+    monkeypatch.setattr(stencil.gc, "collect", lambda *a: collections.append(1) or real(*a))
+    small = np.zeros(10, np.float32)
+    fill(small)  # the same specialisation: nothing compiled
+    stencil.free_compile_arguments()
+    assert collections == [] and small[0] == 1.0
+
+    @ti.kernel
+    def fill_twice(a: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+        for i in a:
+            a[i] = 2.0
+
+    fill_twice(small)  # a new kernel compiles: the next call collects again
+    stencil.free_compile_arguments()
+    assert collections == [1]
