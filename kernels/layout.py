@@ -82,6 +82,18 @@ def block_key_steps() -> np.ndarray:
     return block_key_np(OFFSETS) - block_key_np(np.zeros(3, np.int64))
 
 
+def column_min(a: np.ndarray) -> np.ndarray:
+    """``a.min(axis=0)`` of a 2-d array, one column at a time: numpy reduces an (N, 3) array
+    along axis 0 7-14x slower than each of its columns (45 against 3-7 ms on 3.4M voxels'
+    ijk); the same values."""
+    return np.array([a[:, k].min() for k in range(a.shape[1])], dtype=a.dtype)
+
+
+def column_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=0)`` of a 2-d array, one column at a time (:func:`column_min`)."""
+    return np.array([a[:, k].max() for k in range(a.shape[1])], dtype=a.dtype)
+
+
 def band_box(block_keys: np.ndarray) -> np.ndarray:
     """(lo, hi) float64 (6,): the voxel box ``[8 b_min, 8 (b_max + 1)]`` of the blocks in
     ``block_keys`` (per axis). Cells of the trilinear lattice based outside it have no corner in

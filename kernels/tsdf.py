@@ -59,7 +59,7 @@ import taichi as ti
 from taichi.lang import impl
 
 from .funcs import floor_i32
-from .layout import BLOCK, BLOCK_VOXELS, MAP_BLOCKS
+from .layout import BLOCK, BLOCK_VOXELS, MAP_BLOCKS, column_max, column_min
 from .stencil import first_chunk, virtual_iterations
 MAX_VOLUMES = 1 << 12  # volumes per Taichi program (ids are not reused)
 L1 = 64  # first spatial pointer level: cells per axis
@@ -565,7 +565,7 @@ def _lex_order(ijk: np.ndarray) -> np.ndarray:
     if len(ijk) == 0:
         return np.zeros(0, np.int64)
     ijk = ijk.astype(np.int64, copy=False)
-    lo = ijk.min(axis=0)
-    span = ijk.max(axis=0) - lo + 1
+    lo = column_min(ijk)
+    span = column_max(ijk) - lo + 1
     key = ((ijk[:, 0] - lo[0]) * span[1] + (ijk[:, 1] - lo[1])) * span[2] + (ijk[:, 2] - lo[2])
     return np.argsort(key, kind="stable")

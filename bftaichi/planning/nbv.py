@@ -54,6 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels.layout import column_max, column_min
+
 from ..config import Config
 from ..errors import ConfigError, DataError
 from ..geometry import check_pose, look_at, points_in_world, pose_in_local
@@ -155,8 +157,8 @@ def region_of_interest(ijk: np.ndarray, voxel_size: float, scale: float, target=
     ``ijk`` are in the local grid of ``origin`` (None: the world's)."""
     if len(ijk) == 0:
         raise DataError("the band is empty: no region of interest to plan views for")
-    lo = ijk.min(axis=0) * voxel_size
-    hi = (ijk.max(axis=0) + 1) * voxel_size
+    lo = column_min(ijk) * voxel_size
+    hi = (column_max(ijk) + 1) * voxel_size
     if origin is not None:
         lo, hi = points_in_world(lo, origin), points_in_world(hi, origin)
     centre = 0.5 * (lo + hi) if target is None or len(target) == 0 else np.asarray(target,
@@ -379,8 +381,8 @@ def plan(post, cfg: Config, frames, K, image_size, progress=None) -> dict:
     centre = 0.5 * (lo + hi)
     radius = cfg.nbv.radius_m
     if radius <= 0:
-        bbox_lo = post.ijk.min(axis=0) * post.voxel_size
-        bbox_hi = (post.ijk.max(axis=0) + 1) * post.voxel_size
+        bbox_lo = column_min(post.ijk) * post.voxel_size
+        bbox_hi = (column_max(post.ijk) + 1) * post.voxel_size
         radius = cfg.nbv.radius_scale * 0.5 * float(np.linalg.norm(bbox_hi - bbox_lo))
     poses = make_candidates(cfg, centre, radius)
     coverage = coverage_grid(cfg, lo, hi, post.voxel_size)
@@ -448,8 +450,8 @@ def candidates_around(post, n: int = 48, kind: str = "hemisphere", radius_scale:
     ``radius_scale`` times its bounding radius: ``kind`` ``hemisphere`` / ``sphere``
     (Fibonacci points between the elevations; ``sphere`` from -90 deg) or ``ring`` (at the
     centre's height). World poses."""
-    lo = points_in_world(post.ijk.min(axis=0) * post.voxel_size, post.origin)
-    hi = points_in_world((post.ijk.max(axis=0) + 1) * post.voxel_size, post.origin)
+    lo = points_in_world(column_min(post.ijk) * post.voxel_size, post.origin)
+    hi = points_in_world((column_max(post.ijk) + 1) * post.voxel_size, post.origin)
     centre, radius = 0.5 * (lo + hi), radius_scale * 0.5 * float(np.linalg.norm(hi - lo))
     if kind == "ring":
         return ring_candidates(centre, radius, n)

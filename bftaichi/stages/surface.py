@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kernels.layout import column_max, column_min
+
 from ..checks import check_range
 from ..errors import BftaichiError
 
@@ -102,11 +104,12 @@ def _check_voxels(ijk, values, observed, voxel_size) -> tuple[np.ndarray, np.nda
         bad = np.flatnonzero(observed & ~np.isfinite(values))[0]
         raise BftaichiError(f"values must be finite where observed; row {bad} "
                             f"(ijk {ijk[bad].tolist()}) is {values[bad]}")
-    span = ijk.max(axis=0) - ijk.min(axis=0) + 1
+    lo = column_min(ijk)
+    span = column_max(ijk) - lo + 1
     if np.any(span > _MAX_SPAN):
         raise BftaichiError(f"ijk spans {span.tolist()} voxels; at most {_MAX_SPAN} per axis "
                             "are supported")
-    key = _linear_key(ijk, ijk.min(axis=0), span)
+    key = _linear_key(ijk, lo, span)
     if np.all(key[1:] > key[:-1]):  # sorted and unique already (a band is): no copies
         return ijk, values, observed, voxel_size
     order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))
@@ -181,9 +184,9 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     ijk, values = ijk[observed], values[observed]
     if len(ijk) == 0:
         return empty
-    lo = ijk.min(axis=0)
+    lo = column_min(ijk)
     rel = ijk - lo                        # voxel_idx relative to the bounding box, >= 0
-    n_cells = rel.max(axis=0)             # cells per axis in the bounding box
+    n_cells = column_max(rel)             # cells per axis in the bounding box
     if np.any(n_cells < 1):
         return empty
     # Vertex keys live on the voxel grid of the box, plus one margin layer.
@@ -468,10 +471,14 @@ def _cell_corners(ijk, values, observed, voxel_size, points):
     f = g - base                          # (P, 3) in [0, 1)
     corners = base[:, None, :] + _CORNERS[None, :, :]                   # (P, 8, 3)
 
-    lo = ijk.min(axis=0)
-    dims = ijk.max(axis=0) - lo + 1
+    lo = column_min(ijk)
+    dims = column_max(ijk) - lo + 1
     keys = _linear_key(ijk, lo, dims)     # sorted ascending, since ijk is sorted
-    inside = np.all((corners >= lo) & (corners < lo + dims), axis=2)    # (P, 8)
+    # (P, 8): every coordinate in [lo, lo + dims), one axis at a time (numpy reduces a last
+    # axis of length 3 slowly)
+    inside = np.ones(corners.shape[:2], bool)
+    for a in range(3):
+        inside &= (corners[..., a] >= lo[a]) & (corners[..., a] < lo[a] + dims[a])
     ck = np.where(inside, _linear_key(np.where(inside[..., None], corners, lo), lo, dims), -1)
     pos = np.clip(np.searchsorted(keys, ck), 0, len(keys) - 1)
     found = inside & (keys[pos] == ck)
