@@ -134,11 +134,12 @@ def _sub_stencil(S, nbr, far, rows: np.ndarray, loc: np.ndarray | None = None) -
         loc = np.full(len(S) + 1, -1, np.int32)  # loc[-1] (a missing neighbour) stays -1
     loc[rows] = np.arange(len(rows), dtype=np.int32)
     nbr_r = loc[nbr[rows]]
-    S_r = np.where(nbr_r >= 0, S[rows], np.float32(0)).astype(np.float32)
+    S_r = np.where(nbr_r >= 0, S[rows], np.float32(0)).astype(np.float32, copy=False)
     far_r = None
     if far is not None:
         nbr2_r = loc[far[1][rows]]
-        far_r = (np.where(nbr2_r >= 0, far[0][rows], np.float32(0)).astype(np.float32), nbr2_r)
+        far_r = (np.where(nbr2_r >= 0, far[0][rows], np.float32(0)).astype(np.float32, copy=False),
+                 nbr2_r)
     loc[rows] = -1
     return S_r, nbr_r, far_r
 

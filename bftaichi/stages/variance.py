@@ -101,10 +101,10 @@ def _face_neighbours(nbr: np.ndarray, x: np.ndarray) -> np.ndarray:
     that neighbour is not in the band."""
     from kernels.probes import FACE_PLUS
 
-    out = np.zeros((len(x), 3), x.dtype)
+    out = np.empty((len(x), 3), x.dtype)
     for e, o in enumerate(FACE_PLUS):
         j = nbr[:, o]
-        out[j >= 0, e] = x[j[j >= 0]]
+        out[:, e] = np.where(j >= 0, x[j], 0)  # j = -1 reads x[-1], masked
     return out
 
 
