@@ -170,10 +170,11 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
     pixel counts its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` (this
     thread's copy, the voxels ``base ..`` of the flat accumulators: plain int64 adds), or their
     diagonal ``w a_c^2`` to ``(D_acc,)`` (MODE_DIAGONAL), or (MODE_ROWS) writes each sample to
-    ``(row_idx, row_a, row_y, row_w, row_z, row_status)`` at row ``(vs ceil(W / stride) + u / stride) (mf + m + 1) + j + mf``
-    (MODE_MISFIT: :func:`misfit_frame`). Counters to ``counts[vs]``; ``scratch`` (rows, mf +
-    m + 1, 8): the corners of the pixel's samples, ``blocks`` (.., BLOCK_CACHE) the block
-    cache, both flat (:func:`kernels.lookup.look_up_sample`)."""
+    ``(row_idx, row_a, row_y, row_w, row_z, row_status)`` at row ``(vs ceil(W / stride) + u /
+    stride) (mf + m + 1) + j + mf`` (MODE_MISFIT: :func:`misfit_frame`). Counters to
+    ``counts[vs]``; ``scratch`` (rows, mf + m + 1, 8): the corners of the pixel's samples,
+    ``blocks`` (.., BLOCK_CACHE) the block cache, both flat
+    (:func:`kernels.lookup.look_up_sample`)."""
     H, W = depth.shape[0], depth.shape[1]
     n_us = (W + stride - 1) // stride
     M = ti.Matrix([[prm[P_M + 3 * r + c] for c in ti.static(range(3))]
@@ -186,8 +187,8 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
     v = vs * stride
     n_valid, n_used, n_acc_row, n_drop, n_fb, n_gate = 0, 0, 0, 0, 0, 0
     row = vs * (mf + m + 1) + mf  # the slot of sample j is row + j
-    for jj in range(mf + m + 1):
-        blocks[(row - mf + jj) * BLOCK_CACHE] = 1 << 30  # no block has this coordinate: empty
+    for j in range(-mf, m + 1):
+        blocks[(row + j) * BLOCK_CACHE] = 1 << 30  # no block has this coordinate: empty cache
     pixels = ti.cast(prm[P_PIXELS], ti.i32)
     for us in range(n_us):
         u = us * stride
@@ -232,7 +233,7 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                             elif near or ti.cast(n_acc, ti.f64) >= prm[P_SHARE]:
                                 look = 0
                     if look:
-                        status = look_up_sample(row + j, j == -mf, z, o, m_ray, n_dot_ray,
+                        status = look_up_sample(row + j, j == -mf, z, o, m_ray,
                                                 ti.cast(j, ti.f64) * spacing * n_dot_ray, gate,
                                                 block_hash, block_table, ref, scratch, blocks)
                         if status == SAMPLE_GATED:

@@ -125,8 +125,8 @@ BLOCK_CACHE = 11  # block cache entry of a sample: its block (3), the rows of th
 
 
 @ti.func
-def look_up_sample(slot: ti.i32, first: ti.i32, z: ti.f64, o, m_ray, n_dot_ray: ti.f64,
-                   y: ti.f64, gate: ti.f64, block_hash: ti.template(),
+def look_up_sample(slot: ti.i32, first: ti.i32, z: ti.f64, o, m_ray, y: ti.f64,
+                   gate: ti.f64, block_hash: ti.template(),
                    block_table: ti.template(), ref: ti.template(), scratch: ti.template(),
                    blocks: ti.template()) -> ti.i32:
     """A sample (depth ``z`` > 0, distance ``y`` from its pixel's surface) in its pixel row's

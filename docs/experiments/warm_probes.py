@@ -32,11 +32,13 @@ def hashed_vectors(n, n_probes, seed=0, *, method, ijk=None):
     STATE["cur_ijk"] = np.asarray(ijk)
     return (np.abs(Z) * signs).astype(np.float32)
 
-def pcg_spy(S, nbr, B, X0=None, tol=1e-6, maxiter=1000, dtype=np.float32, check=True, far=None, compact=None):
+def pcg_spy(S, nbr, B, X0=None, tol=1e-6, maxiter=1000, dtype=np.float32, check=True, far=None,
+            compact=None):
     if B.shape[1] > 1 and STATE["warm"] and STATE["U"] is not None:
         ijk = STATE["cur_ijk"]
         from bftaichi.posterior import warm_start
-        X0 = np.stack([warm_start(STATE["ijk"], STATE["U"][:, k], ijk, np.zeros(len(ijk), np.float32))
+        zero = np.zeros(len(ijk), np.float32)
+        X0 = np.stack([warm_start(STATE["ijk"], STATE["U"][:, k], ijk, zero)
                        for k in range(B.shape[1])], axis=1).astype(np.float32)
     X, info = orig_pcg(S, nbr, B, X0, tol, maxiter, dtype, check, far, compact)
     if B.shape[1] > 1:
@@ -57,4 +59,5 @@ saved = (STATE["ijk"], STATE["U"])
 for warm in (False, True):
     STATE["warm"] = warm; STATE["ijk"], STATE["U"] = saved
     t0 = time.perf_counter(); post = recon.solve(variance=True); t = time.perf_counter() - t0
-    print(f"{sys.argv[1]} warm={warm}: probe iterations {STATE['log'][-1]}, variance {post.seconds['variance']:.3f} s, solve {t:.2f} s")
+    print(f"{sys.argv[1]} warm={warm}: probe iterations {STATE['log'][-1]}, "
+          f"variance {post.seconds['variance']:.3f} s, solve {t:.2f} s")
