@@ -443,6 +443,7 @@ class CompactStencil:
         self._n_chunks = max(1, -(-layout["n_simd"] // _SUBRUNS_PER_CHUNK))
         self.nbytes = self._D.nbytes
         self._run_of_row = None  # the sub-run of each row (apply_rows), built on first use
+        self._rows_buffers = None  # apply_rows' padded vectors, made on first use
         self.build_seconds = time.perf_counter() - t0
 
     def set_diagonal(self, diag: np.ndarray, rows: np.ndarray | None = None) -> None:
@@ -495,7 +496,8 @@ class CompactStencil:
         """``(Q x)[rows]`` for an (N,) float64 ``x`` and band indices ``rows``, bit for bit
         :meth:`apply`'s values there, at the cost of the sub-runs that hold ``rows`` rather
         than of the band (the MAP's local passes): :meth:`apply_dot`'s kernel on a table of
-        those sub-runs, kept after the layout's own (the first call makes room for it)."""
+        those sub-runs, kept after the layout's own (the first call makes room for it, and
+        for two padded vectors kept until :meth:`drop_scratch`)."""
         x = np.asarray(x, np.float64)
         if x.shape != (self.n,):
             raise ValueError(f"x must have shape ({self.n},), got {x.shape}")
@@ -522,14 +524,20 @@ class CompactStencil:
         self._D[sel_base:sel_base + len(runs) * _R_COLS].view(np.int32)[:] = \
             table[runs].reshape(-1)
         n_simd_sel = int(np.searchsorted(runs, n_simd))
-        xp = zeros_aligned(self.n + 1, np.float64)
+        if self._rows_buffers is None:  # padded x and Q x, kept: the local passes call this
+            self._rows_buffers = (zeros_aligned(self.n + 1, np.float64),  # tens of times
+                                  np.empty(self.n + 1, np.float64))  # (only rows are read)
+        xp, yp = self._rows_buffers
         xp[1:] = x
-        yp = zeros_aligned(self.n + 1, np.float64)
         ker = _compact_kernels(np.float64, self.far)
         part = np.empty((max(1, -(-n_simd_sel // _SUBRUNS_PER_CHUNK)), ker.lanes))
         if len(runs):
             ker.apply_dot(self._D, mbase, sel_base, len(runs), n_simd_sel, stride, xp, yp, part)
         return yp[1:][rows]
+
+    def drop_scratch(self) -> None:
+        """Free the padded vectors :meth:`apply_rows` keeps between calls."""
+        self._rows_buffers = None
 
     def apply(self, x, out=None, padded: bool = False) -> np.ndarray:
         """``out = Q x`` for one vector; the same arguments and result as :func:`apply_Q`

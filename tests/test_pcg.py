@@ -275,6 +275,37 @@ def test_compact_rows_of_the_product_are_those_of_the_whole_product(large):
     fresh = CompactStencil(S, nbr, (S2, nbr2))
     assert np.array_equal(op.apply(x), fresh.apply(x))
     assert np.array_equal(op.apply_rows(x, some), fresh.apply(x)[some])
+    y = rng.standard_normal(len(S))  # the kept vectors hold nothing of the last call
+    assert np.array_equal(op.apply_rows(y, np.arange(40, 90)), fresh.apply(y)[40:90])
+    op.drop_scratch()
+    assert np.array_equal(op.apply_rows(x, some), fresh.apply(x)[some])
+
+
+def test_principal_submatrix_is_q_on_the_rows(large):
+    """The local passes' system: Q's rows and columns of a region, neighbours renumbered
+    within it (the numpy gathers' arrays exactly), so that Q_rr x_r = (Q x)[rows] for x zero
+    outside the region; the scratch comes back as it went in."""
+    from bftaichi.stages.solve import _rings
+    from kernels.prior import add_curvature_prior
+    from kernels.submatrix import principal_submatrix
+    rng = np.random.default_rng(5)
+    S, nbr = large["S"], large["nbr"]
+    far = add_curvature_prior(S.copy(), nbr, lam2=0.5)
+    loc = np.full(len(S) + 1, -1, np.int32)
+    for rows in (np.array([7]), _rings(nbr, np.array([100, 2000]), 2),
+                 np.flatnonzero(rng.random(len(S)) < 0.3), np.arange(len(S))):
+        S_r, nbr_r, far_r = principal_submatrix(S, nbr, far, rows, loc)
+        assert (loc == -1).all()
+        ref = np.full(len(S) + 1, -1, np.int32)
+        ref[rows] = np.arange(len(rows))
+        for got, links, (coef, table) in ((nbr_r, S_r, (S, nbr)), (far_r[1], far_r[0], far)):
+            want = ref[table[rows]]
+            assert np.array_equal(got, want)
+            assert np.array_equal(links, np.where(want >= 0, coef[rows], np.float32(0)))
+        x = np.zeros(len(S))
+        x[rows] = rng.standard_normal(len(rows))
+        np.testing.assert_allclose(apply_Q(S_r, nbr_r, x[rows], far=far_r),
+                                   apply_Q(S, nbr, x, far=far)[rows], rtol=1e-12, atol=1e-12)
 
 
 def test_rings_of_a_region_are_the_breadth_first_neighbourhood(large):

@@ -172,3 +172,45 @@ def test_the_map_counts_a_run_of_frames_once_only_where_frames_share_their_error
     assert still[True].observations["noise_fit"]["frames_sharing_noise"] == 1.0
     for field in ("mean", "var", "cov"):
         np.testing.assert_array_equal(getattr(still[True], field), getattr(still[False], field))
+
+
+def _fit_extra_reference(r, s, t, steps):
+    """The noise fit's bisection with the median of every pair at every step."""
+    from bftaichi.stages.pairmodel import pair_quantile
+
+    def stat(e):
+        return float(np.median(pair_quantile(r, s, t, e)))
+
+    if stat(0.0) <= 0.5:
+        return 0.0
+    lo, hi = 0.0, max(float(np.median(r)) / 0.6744897501960817, 1e-6)
+    while stat(hi) > 0.5 and hi < 1.0:
+        hi *= 2.0
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if stat(mid) > 0.5 else (lo, mid)
+    return hi
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_noise_fit_finds_the_plain_bisections_noise_bit_for_bit(seed):
+    """fit_extra computes each step's median over fewer pairs (those that can still be the
+    median): the same extra noise, to the bit, as the bisection over every pair, on even
+    and odd counts, tied residuals, no extra noise and a heavy truncation."""
+    from bftaichi.stages.pairmodel import fit_extra
+
+    rng = np.random.default_rng(seed)
+    n = [101, 5000, 40001, 2000, 3000, 60000][seed]
+    s = rng.uniform(0.001, 0.01, n)
+    e = [0.004, 0.0, 0.01, 0.003, 0.02, 0.002][seed]
+    d = rng.normal(0.0, np.sqrt(s * s + 2 * e * e))
+    if seed == 3:
+        d = np.round(d, 3)  # many ties
+    t = np.maximum(0.04 if seed != 4 else 0.005, 3 * s)  # seed 4: heavily truncated
+    r = np.abs(d)
+    keep = r < t
+    r, s, t = r[keep], s[keep], t[keep]
+    for steps in (40, 16):
+        assert fit_extra(r, s, t, steps) == _fit_extra_reference(r, s, t, steps)
+    if seed == 1:
+        assert fit_extra(r, s, t) < 1e-3  # the sensor model alone, nearly

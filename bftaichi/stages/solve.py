@@ -126,24 +126,6 @@ def _rings(nbr: np.ndarray, seeds: np.ndarray, rings: int,
     return region
 
 
-def _sub_stencil(S, nbr, far, rows: np.ndarray, loc: np.ndarray | None = None) -> tuple:
-    """The stencil of Q's principal submatrix on the band voxels ``rows`` (sorted):
-    ``(S, nbr, far)`` with the rows' own numbering, links leaving ``rows`` cut. ``loc``: an
-    (N + 1,) int32 scratch of -1, left so."""
-    if loc is None:
-        loc = np.full(len(S) + 1, -1, np.int32)  # loc[-1] (a missing neighbour) stays -1
-    loc[rows] = np.arange(len(rows), dtype=np.int32)
-    nbr_r = loc[nbr[rows]]
-    S_r = np.where(nbr_r >= 0, S[rows], np.float32(0)).astype(np.float32, copy=False)
-    far_r = None
-    if far is not None:
-        nbr2_r = loc[far[1][rows]]
-        far_r = (np.where(nbr2_r >= 0, far[0][rows], np.float32(0)).astype(np.float32, copy=False),
-                 nbr2_r)
-    loc[rows] = -1
-    return S_r, nbr_r, far_r
-
-
 def anchor_target(tsdf: np.ndarray, trunc_m: float, bootstrap_trunc_m: float,
                   voxel_size_m: float) -> np.ndarray:
     """(N,) float32: what a free-space anchor (:func:`solve_map`) pulls a voxel's SDF to,
@@ -217,6 +199,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     from kernels.layout import CENTRE
     from kernels.pcg import pcg
     from kernels.prior import laplace_curvature_prior, reweight_curvature_prior
+    from kernels.submatrix import principal_submatrix
 
     S, h = system.S, system.h
     # one layout for every pass: the free-space anchors change only the diagonal
@@ -292,7 +275,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
         count["local_solves"] += 1
         if r_norm <= tol * h_norm:
             return mean
-        S_r, nbr_r, far_r = _sub_stencil(S, system.nbr, system.far, region, loc)
+        S_r, nbr_r, far_r = principal_submatrix(S, system.nbr, system.far, region, loc)
         # a principal submatrix of the symmetric Q: symmetric by construction, not checked
         d, info = pcg(S_r, nbr_r, r, None, tol=max(tol * h_norm / r_norm, 1e-8),
                       maxiter=solver.maxiter, far=far_r,
@@ -331,6 +314,7 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     if loose > solver.tol:
         mean, info = solved(mean, solver.tol)
         mean, info, settled = settle(mean, info, solver.tol, 0)
+    compact.drop_scratch()  # the local passes' vectors
     n_free, n_anchored = (int(free_mask.sum()), len(anchored)) if free > 0 else (0, 0)
     # the anchors enforce an inequality on the mean; they are not measurements, so the
     # variance (step 6, on the same system) is that of the data and the prior without them
