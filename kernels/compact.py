@@ -12,6 +12,7 @@ import taichi as ti
 from .layout import CENTRE, FAR, STENCIL
 from .stencil import (apply_Q_batched, as_numpy, check_far, check_stencil, far_arrays,
                       first_chunk, stencil_arrays, virtual_iterations, zeros_aligned)
+from .subruns import subruns
 
 _KERNELS = {}
 
@@ -332,28 +333,12 @@ def _compact_layout(S, nbr, far) -> dict:
     if n:
         _row_columns(nbr, nbr2, int(far is not None), bits, value, defined, gap)
     defined, gap = defined.view(bool), gap.view(bool)
-    # runs: maximal rows (i, j, k), (i, j, k+1), ... = consecutive band indices
+    # runs: maximal rows (i, j, k), (i, j, k+1), ... = consecutive band indices; sub-runs:
+    # split where a column's offset changes (a gap in a neighbour column) and around rows
+    # with a gap inside their own 3 neighbours of a column (kernels.subruns)
     cont = np.zeros(n, bool)
     cont[1:] = nbr[1:, CENTRE - 1] == rows[:-1]
-    run_id = np.cumsum(~cont)
-    # sub-runs: split runs where a column's offset changes (a gap in a neighbour column) and
-    # around rows with a gap inside their own 3 neighbours of a column
-    split = ~cont | gap
-    split[1:] |= gap[:-1]
-    for c in range(n_col):
-        last = np.maximum.accumulate(np.where(defined[c], rows, -1))
-        prev = np.empty(n, np.int32)
-        prev[0], prev[1:] = -1, last[:-1]
-        p = np.maximum(prev, 0)
-        split |= defined[c] & (prev >= 0) & (run_id[p] == run_id) & (value[c, p] != value[c])
-    start = np.flatnonzero(split)
-    length = np.diff(np.append(start, n))
-    sub_offsets = np.zeros((len(start), n_col), np.int64)
-    for c in range(n_col):  # the value of the first row of the sub-run that defines it, or 0
-        nxt = np.minimum.accumulate(np.where(defined[c], rows, n)[::-1])[::-1]
-        f = nxt[start]
-        inside = f < start + length
-        sub_offsets[:, c] = np.where(inside, value[c, np.minimum(f, n - 1)], 0)
+    start, length, sub_offsets = subruns(cont, gap, value, defined)
     # SIMD sub-runs: every padded index a whole block touches lies in [0, N] (blocks of the
     # widest lane count, so one layout serves float32 and float64)
     lanes = _compact_lanes(np.float32)

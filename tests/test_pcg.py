@@ -555,3 +555,37 @@ def test_compile_arguments_are_freed_and_later_calls_collect_nothing(monkeypatch
     fill_twice(small)  # a new kernel compiles: the next call collects again
     stencil.free_compile_arguments()
     assert collections == [1]
+
+
+def test_subruns_split_runs_where_a_column_changes_its_offset():
+    """The compact layout's sub-runs against a row-by-row reference: a new one at each run's
+    start, at and after a gap row, and where a column takes another offset than at its last
+    defined row in the run; each sub-run's offsets are those of its first defining rows."""
+    from kernels.subruns import subruns
+    rng = np.random.default_rng(3)
+    n, n_col = 3000, 5
+    cont = rng.random(n) < 0.9
+    cont[0] = False
+    gap = rng.random(n) < 0.02
+    defined = rng.random((n_col, n)) < 0.7
+    value = np.where(defined, rng.integers(0, 3, (n_col, n)) * (rng.random((n_col, n)) < 0.05),
+                     0).astype(np.int32)
+    split = ~cont | gap
+    split[1:] |= gap[:-1]
+    last = [None] * n_col
+    for i in range(n):
+        if not cont[i]:
+            last = [None] * n_col
+        for c in range(n_col):
+            if defined[c, i]:
+                split[i] |= last[c] is not None and last[c] != value[c, i]
+                last[c] = value[c, i]
+    start = np.flatnonzero(split)
+    ends = np.append(start[1:], n)
+    want = np.array([[next((value[c, i] for i in range(a, b) if defined[c, i]), 0)
+                      for c in range(n_col)] for a, b in zip(start, ends)])
+    got_start, got_length, got = subruns(cont, gap, value, defined)
+    assert np.array_equal(got_start, start)
+    assert np.array_equal(got_length, ends - start)
+    assert np.array_equal(got, want)
+    assert (got_length > 1).any() and len(start) > n // 10  # runs of both kinds were tested
