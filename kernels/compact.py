@@ -318,8 +318,8 @@ def _first_offsets(nbr, far, rows) -> np.ndarray:
 
 def _compact_layout(S, nbr, far) -> dict:
     """The compact layout of a checked stencil: the per-row columns and the coefficient slots
-    by two Taichi passes over the rows (:func:`_row_columns`, :func:`_fill_slots`), the runs
-    and sub-runs by numpy scans over the 8 columns and 6 far offsets. See
+    by two Taichi passes over the rows (:func:`_row_columns`, :func:`_fill_slots`), the
+    sub-runs by two more over runs and sub-runs (:func:`kernels.subruns.subruns`). See
     :class:`CompactStencil`."""
     n = S.shape[0]
     rows = np.arange(n, dtype=np.int32)
@@ -382,10 +382,10 @@ class CompactStencil:
     """Q in the compact layout, for fast single-vector products Q·x (float32 or float64).
 
     Built once from a checked band stencil ``(S, nbr, far)`` (:mod:`kernels.stencil`) by
-    vectorised numpy; :func:`pcg` / :func:`pcg_batched` build one per solve of a single
-    right-hand side and reuse it every iteration. The layout stores 60 bytes per voxel
-    (72 with ``far``) plus the sub-run table (~4 bytes per voxel in a 10-voxel-thick band)
-    against the 216 bytes of (S, nbr):
+    Taichi passes and numpy (:func:`_compact_layout`); :func:`pcg` / :func:`pcg_batched`
+    build one per solve of a single right-hand side and reuse it every iteration. The
+    layout stores 60 bytes per voxel (72 with ``far``) plus the sub-run table (~4 bytes per
+    voxel in a 10-voxel-thick band) against the 216 bytes of (S, nbr):
 
     * ``U``: Q_ii and the 13 *upper* offsets o > 13 (14 float32 slots, +3 for the far
       offsets +2), structure of arrays (slot s of every voxel contiguous, voxel i at

@@ -1,13 +1,13 @@
 """The sub-runs of the compact stencil layout (:class:`kernels.compact.CompactStencil`).
 
-A run is a maximal stretch of consecutive band rows (i, j, k), (i, j, k+1), ... whose
-neighbour columns keep their offsets, so that a block of rows reads each stencil term as one
-contiguous vector; a sub-run splits a run where a column's offset changes. Both passes below
-are parallel over runs or sub-runs, each thread scanning its own rows in order (integers only:
-the same result whatever the schedule). Each replaces a numpy scan over the whole band per
-column (prefix maxima and minima of the defined rows), which cost the MAP's local passes more
-than their solves (docs/measurements.md, "The MAP's local passes without their Python
-overhead").
+A run is a maximal stretch of consecutive band rows (i, j, k), (i, j, k+1), ...; a sub-run is
+a piece of a run along which every neighbour column keeps its offset, so that a block of its
+rows reads each stencil term as one contiguous vector. Both passes below are parallel over
+runs or sub-runs, each thread scanning its own rows in order (integers only: the same result
+whatever the schedule). They replace two numpy scans of the whole band per column (prefix
+maxima and minima of the rows defining it), which with the numpy around them cost the MAP's
+local passes more than their solves (docs/measurements.md, "The MAP's local passes without
+their Python overhead").
 """
 
 import numpy as np
