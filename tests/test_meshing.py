@@ -286,6 +286,25 @@ def test_sample_field_at_mesh_vertices_gives_level():
     assert np.abs(out).max() < 0.01 * vs
 
 
+def test_sample_field_columns_are_each_columns_own():
+    """(N, C) values (colour) give, column by column, bitwise what each column gives alone,
+    NaN where a corner is unobserved, and the voxels may come in any order."""
+    vs = 0.02
+    ijk, sdf = sphere_shell(vs)
+    rng = np.random.default_rng(3)
+    rgb = rng.uniform(0, 255, (len(ijk), 3)).astype(np.float32)
+    obs = rng.random(len(ijk)) > 0.02
+    v, _ = extract_mesh(ijk, sdf, np.ones(len(sdf), bool), vs)
+    perm = rng.permutation(len(ijk))
+    out = sample_field(ijk[perm], rgb[perm], obs[perm], vs, v)
+    assert out.shape == (len(v), 3) and out.dtype == np.float32
+    alone = np.stack([sample_field(ijk, rgb[:, c], obs, vs, v) for c in range(3)], axis=1)
+    assert np.isnan(alone).any() and np.isfinite(alone).any()
+    np.testing.assert_array_equal(out, alone)
+    with pytest.raises(BftaichiError, match="values must have shape"):
+        sample_field(ijk, rgb[:, :, None], obs, vs, v)
+
+
 def test_sample_field_bad_points():
     ijk = voxel_grid((0, 0, 0), (2, 2, 2))
     val = np.zeros(8, np.float32)

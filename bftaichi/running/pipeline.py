@@ -330,10 +330,9 @@ def _stages(cfg: Config, frames, gt, out: Path, timer, t_start: float, progress:
                 from ..stages.surface import sample_field
 
                 # the TSDF's per-voxel colour at the posterior surface (nearest observed voxels)
-                cols = [sample_field(voxels["ijk"], voxels["rgb"][:, c], voxels["weight"] > 0,
-                                     cfg.tsdf.voxel_size_m, post_mesh.vertices) for c in range(3)]
-                post_colors = np.clip(np.nan_to_num(np.stack(cols, axis=1)), 0, 255).astype(
-                    np.uint8)
+                rgb = sample_field(voxels["ijk"], voxels["rgb"], voxels["weight"] > 0,
+                                   cfg.tsdf.voxel_size_m, post_mesh.vertices)
+                post_colors = np.clip(np.nan_to_num(rgb), 0, 255).astype(np.uint8)
             write_mesh_ply(out / "mesh.ply", post_mesh.vertices, post_mesh.faces,
                            vertex_attrs=mesh_attrs(post_mesh),
                            vertex_colors=post_colors, origin=recon.origin)

@@ -94,8 +94,8 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
 
             b = np.sqrt(b2)
             for e, off in enumerate(FACE_PLUS):
-                j = np.maximum(band.nbr[:, off], 0)
-                cov[:, e] = np.where(band.nbr[:, off] >= 0, cov[:, e] + b * b[j], 0)
+                j = band.nbr[:, off]  # one pass over the (N, 27) table per axis
+                cov[:, e] = np.where(j >= 0, cov[:, e] + b * b[np.maximum(j, 0)], 0)
         var_stats = dict(var_stats, local_noise=misfit)
         lap("misfit")
     return {"mean": mean, "var": np.asarray(var, np.float32),

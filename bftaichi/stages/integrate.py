@@ -310,9 +310,8 @@ class TSDFVolume:
                                        self.voxel_size_m)
         colors = None
         if "rgb" in v and len(vertices):
-            cols = [sample_field(v["ijk"], v["rgb"][:, c], v["weight"] > 0, self.voxel_size_m,
-                                 vertices) for c in range(3)]
-            colors = np.clip(np.nan_to_num(np.stack(cols, axis=1)), 0, 255).astype(np.uint8)
+            rgb = sample_field(v["ijk"], v["rgb"], v["weight"] > 0, self.voxel_size_m, vertices)
+            colors = np.clip(np.nan_to_num(rgb), 0, 255).astype(np.uint8)
         if not local:
             vertices = points_in_world(vertices, self.origin)
         return trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)

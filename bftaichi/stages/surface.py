@@ -68,10 +68,11 @@ _CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)],
 # input validation
 # --------------------------------------------------------------------------------------------
 
-def _check_voxels(ijk, values, observed, voxel_size) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                float]:
-    """Validate the sparse voxel arrays; return (ijk int64 (N,3), values float64 (N,),
-    observed bool (N,), voxel_size), rows sorted by ijk. Raises BftaichiError naming the argument."""
+def _check_voxels(ijk, values, observed, voxel_size, channels: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Validate the sparse voxel arrays; return (ijk int64 (N,3), values float64 (N,), or
+    (N, C) with ``channels``, observed bool (N,), voxel_size), rows sorted by ijk. Raises
+    BftaichiError naming the argument."""
     ijk = np.asarray(ijk)
     if ijk.ndim != 2 or ijk.shape[1] != 3:
         raise BftaichiError(f"ijk must have shape (N, 3), got {ijk.shape}")
@@ -79,8 +80,10 @@ def _check_voxels(ijk, values, observed, voxel_size) -> tuple[np.ndarray, np.nda
         raise BftaichiError(f"ijk must be an integer array (voxel indices), got dtype {ijk.dtype}")
     n = ijk.shape[0]
     values = np.asarray(values)
-    if values.shape != (n,):
-        raise BftaichiError(f"values must have shape ({n},) to match ijk, got {values.shape}")
+    if not (values.shape == (n,) or channels and values.ndim == 2 and values.shape[0] == n
+            and values.shape[1] >= 1):
+        want = f"({n},) or ({n}, C)" if channels else f"({n},)"
+        raise BftaichiError(f"values must have shape {want} to match ijk, got {values.shape}")
     if n and not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):
         raise BftaichiError(f"values must be a float array, got dtype {values.dtype}")
     observed = np.asarray(observed)
@@ -101,7 +104,8 @@ def _check_voxels(ijk, values, observed, voxel_size) -> tuple[np.ndarray, np.nda
     if n == 0:
         return ijk.reshape(0, 3), values, observed, voxel_size
     if not np.all(np.isfinite(values[observed])):
-        bad = np.flatnonzero(observed & ~np.isfinite(values))[0]
+        finite = np.isfinite(values) if values.ndim == 1 else np.isfinite(values).all(axis=1)
+        bad = np.flatnonzero(observed & ~finite)[0]
         raise BftaichiError(f"values must be finite where observed; row {bad} "
                             f"(ijk {ijk[bad].tolist()}) is {values[bad]}")
     lo = column_min(ijk)
@@ -203,15 +207,23 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     bits = boundary @ np.array([4, 2, 1])  # which axes a voxel sits on a chunk boundary of
     for shift in _CORNERS:                # 8 combinations of "also in the previous chunk" per axis
         need = int(shift @ np.array([4, 2, 1]))
+        if need == 0:                     # every voxel, in its own chunk
+            keep = np.all(q < n_chunks, axis=1)   # the last voxel layer may open an empty chunk
+            rows.append(np.flatnonzero(keep))
+            chunk_idx.append(q[keep])
+            continue
         sel = (bits & need) == need       # on a boundary along every axis the shift moves
         qs = q[sel] - shift
-        keep = np.all(qs < n_chunks, axis=1)   # the last voxel layer may open an empty chunk
+        keep = np.all(qs < n_chunks, axis=1)
         rows.append(np.flatnonzero(sel)[keep])
         chunk_idx.append(qs[keep])
     rows = np.concatenate(rows)
     chunk_idx = np.concatenate(chunk_idx)
     chunk_key = (chunk_idx[:, 0] * n_chunks[1] + chunk_idx[:, 1]) * n_chunks[2] + chunk_idx[:, 2]
-    order = np.argsort(chunk_key, kind="stable")
+    # a stable sort's order depends only on the keys' order: through 16 bits where they fit,
+    # numpy sorts them by radix
+    narrow = chunk_key.astype(np.int16) if int(np.prod(n_chunks)) <= 1 << 15 else chunk_key
+    order = np.argsort(narrow, kind="stable")
     rows, chunk_idx, chunk_key = rows[order], chunk_idx[order], chunk_key[order]
     starts = np.flatnonzero(np.r_[True, chunk_key[1:] != chunk_key[:-1]])
     ends = np.r_[starts[1:], len(chunk_key)]
@@ -274,8 +286,10 @@ def extract_mesh(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     faces = faces[~degenerate]
     if len(faces) == 0:
         return empty
-    used, faces = np.unique(faces, return_inverse=True)
-    faces = faces.reshape(-1, 3)
+    referenced = np.zeros(len(pos), bool)  # the vertices faces use, renumbered in order
+    referenced[faces] = True
+    used = np.flatnonzero(referenced)
+    faces = (np.cumsum(referenced) - 1)[faces]
     vertices = (pos[used] + lo + 0.5) * voxel_size
     out = vertices.astype(np.float32), faces.astype(np.int32)
     if return_edges:
@@ -403,26 +417,31 @@ def sample_field(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
 
     Args:
         ijk, values, observed: the sparse field, as for :func:`extract_mesh` (values may be any
-            per-voxel float, e.g. the posterior std; must be finite where observed).
+            per-voxel float, e.g. the posterior std; must be finite where observed). ``values``
+            may also be (N, C), several fields over the same voxels (colour channels): the
+            cells are looked up once, and each column comes out as it would alone.
         voxel_size: voxel edge in metres.
         points: (P, 3) float world metres, finite.
 
     Returns:
-        (P,) float32 interpolated values; NaN where a contributing voxel is absent or unobserved.
+        (P,) float32 interpolated values, or (P, C) for (N, C) values; NaN where a
+        contributing voxel is absent or unobserved.
     """
-    corners = _cell_corners(ijk, values, observed, voxel_size, points)
-    out = np.full(len(points), np.nan, dtype=np.float32)
+    corners = _cell_corners(ijk, values, observed, voxel_size, points, channels=True)
+    shape = (len(np.asarray(points)),) + np.shape(values)[1:]
+    out = np.full(shape, np.nan, dtype=np.float32)
     if corners is None:
         return out
-    f, found, vals = corners
+    f, found, gather = corners
     w = np.prod(np.where(_CORNERS[None, :, :] == 1, f[:, None, :], 1.0 - f[:, None, :]), axis=2)
     needed = w >= _WEIGHT_TOL
     ok = np.all(found | ~needed, axis=1)
     wf = np.where(found, w, 0.0)
-    vsum = np.sum(wf * vals, axis=1)
     wsum = np.sum(wf, axis=1)
     ok &= wsum > 0
-    out[ok] = (vsum[ok] / wsum[ok]).astype(np.float32)
+    for c in range(out.shape[1] if out.ndim == 2 else 1):  # each column as on its own
+        vsum = np.sum(wf * gather(c), axis=1)
+        out[(ok, c) if out.ndim == 2 else ok] = (vsum[ok] / wsum[ok]).astype(np.float32)
     return out
 
 
@@ -437,7 +456,8 @@ def sample_gradient(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray,
     out = np.full((len(points), 3), np.nan)
     if corners is None:
         return out
-    f, found, vals = corners
+    f, found, gather = corners
+    vals = gather(0)
     ok = found.all(axis=1)
     lin = np.where(_CORNERS[None, :, :] == 1, f[:, None, :], 1.0 - f[:, None, :])  # (P, 8, 3)
     slope = np.where(_CORNERS == 1, 1.0, -1.0)                                     # (8, 3)
@@ -447,12 +467,15 @@ def sample_gradient(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray,
     return out
 
 
-def _cell_corners(ijk, values, observed, voxel_size, points):
-    """The cell of each point and its 8 corner voxels: ``(f, found, vals)`` with f (P, 3) the
-    point's fractional position in its cell (voxels, [0, 1)), found (P, 8) bool (corner present
-    and observed; order :data:`_CORNERS`) and vals (P, 8) float64 (0 where not found); None
-    when there are no points or no observed voxel. Validates the arguments."""
-    ijk, values, observed, voxel_size = _check_voxels(ijk, values, observed, voxel_size)
+def _cell_corners(ijk, values, observed, voxel_size, points, channels: bool = False):
+    """The cell of each point and its 8 corner voxels: ``(f, found, gather)`` with f (P, 3)
+    the point's fractional position in its cell (voxels, [0, 1)), found (P, 8) bool (corner
+    present and observed; order :data:`_CORNERS`) and ``gather(c)`` the corners' values (P, 8)
+    float64 (0 where not found) of column ``c`` of (N, C) ``values`` (``channels``), or of
+    (N,) ``values``; None when there are no points or no observed voxel. Validates the
+    arguments."""
+    ijk, values, observed, voxel_size = _check_voxels(ijk, values, observed, voxel_size,
+                                                      channels)
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise BftaichiError(f"points must have shape (P, 3), got {points.shape}")
@@ -482,7 +505,11 @@ def _cell_corners(ijk, values, observed, voxel_size, points):
     ck = np.where(inside, _linear_key(np.where(inside[..., None], corners, lo), lo, dims), -1)
     pos = np.clip(np.searchsorted(keys, ck), 0, len(keys) - 1)
     found = inside & (keys[pos] == ck)
-    return f, found, np.where(found, values[pos], 0.0)
+
+    def gather(c: int) -> np.ndarray:
+        return np.where(found, (values if values.ndim == 1 else values[:, c])[pos], 0.0)
+
+    return f, found, gather
 
 
 # --------------------------------------------------------------------------------------------

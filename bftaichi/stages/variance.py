@@ -82,28 +82,37 @@ def estimate_variance(system, solver, ijk: np.ndarray, *, probes: bool = True,
     stats = dict(stats, n_floored=int(np.count_nonzero(var < floor)))
     var = np.maximum(var, floor)
     var_b = var
+    faces = _faces(system.nbr)
     if solver.variance == "blend" and data is not None:
-        var, cov, stats = _blend(system, var, cov, stats, data[1], kappa)
+        var, cov, stats = _blend(system, faces, var, cov, stats, data[1], kappa)
     elif solver.variance == "blend-sampled" and data is not None:
-        var, cov, stats = _blend_sampled(system, solver, var, cov, stats, *data, kappa)
+        var, cov, stats = _blend_sampled(system, faces, solver, var, cov, stats, *data,
+                                          kappa)
     if bias is not None:
         if data is None:
             raise ValueError("the prior bias needs data = (W, D_ii): the data's share")
-        var, cov, stats = _add_bias(system, var_b, var, cov, stats, bias, data[1], kappa)
-    nbr_var = _face_neighbours(system.nbr, var)
+        var, cov, stats = _add_bias(system, faces, var_b, var, cov, stats, bias, data[1],
+                                     kappa)
+    nbr_var = _face_neighbours(faces, var)
     bound = np.sqrt(var[:, None].astype(np.float64) * nbr_var).astype(np.float32)
     stats["n_cov_clipped"] = int(np.count_nonzero(np.abs(cov) > bound))
     return var, np.clip(cov, -bound, bound), stats
 
 
-def _face_neighbours(nbr: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(N, 3): ``x`` of each voxel's +x, +y, +z neighbour (the columns of ``cov``), 0 where
-    that neighbour is not in the band."""
+def _faces(nbr: np.ndarray) -> np.ndarray:
+    """(N, 3) int32: the +x, +y, +z neighbours of each voxel (-1 outside the band), the columns
+    of ``cov``; taken once (each column of the (N, 27) table is a pass over all of it)."""
     from kernels.probes import FACE_PLUS
 
+    return np.ascontiguousarray(nbr[:, list(FACE_PLUS)])
+
+
+def _face_neighbours(faces: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(N, 3): ``x`` of each voxel's +x, +y, +z neighbour (``faces``, :func:`_faces`), 0 where
+    that neighbour is not in the band."""
     out = np.empty((len(x), 3), x.dtype)
-    for e, o in enumerate(FACE_PLUS):
-        j = nbr[:, o]
+    for e in range(3):
+        j = faces[:, e]
         out[:, e] = np.where(j >= 0, x[j], 0)  # j = -1 reads x[-1], masked
     return out
 
@@ -116,19 +125,19 @@ def _data_share(system, D_ii) -> np.ndarray:
     return np.clip(np.asarray(D_ii, np.float64) / q, 0.0, 1.0)
 
 
-def _blend(system, var_b, cov_b, stats, D_ii, kappa=None):
+def _blend(system, faces, var_b, cov_b, stats, D_ii, kappa=None):
     """``blend``: ``F^1/2 B F^1/2`` with ``F = diag(kappa rho + (1 - rho)^2)`` (``1 - rho +
     rho^2`` at ``kappa`` = 1)."""
     rho = _data_share(system, D_ii)
     f = 1.0 - rho + rho * rho if kappa is None else kappa * rho + (1.0 - rho) ** 2
     var = var_b.astype(np.float64) * f
-    cov = cov_b.astype(np.float64) * np.sqrt(f[:, None] * _face_neighbours(system.nbr, f))
+    cov = cov_b.astype(np.float64) * np.sqrt(f[:, None] * _face_neighbours(faces, f))
     stats = dict(stats, method=f"blend ({stats['method']}, local data share)",
                  mean_data_share=float(rho.mean()) if len(rho) else 0.0)
     return var.astype(np.float32), cov.astype(np.float32), stats
 
 
-def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii, kappa=None):
+def _blend_sampled(system, faces, solver, var_b, cov_b, stats, W, D_ii, kappa=None):
     """``blend-sampled``: ``kappa S + (1 - rho) max(B - S, 0)``, S by perturbation."""
     from kernels.probes import perturbation_moments
 
@@ -141,7 +150,7 @@ def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii, kappa=None):
     cov = cov_s + prior_share[:, None] * (cov_b.astype(np.float64) - cov_s)
     if kappa is not None:  # the sandwich under the noise the frames share
         var = var + (kappa - 1.0) * var_s
-        cov = cov + (np.sqrt(kappa[:, None] * _face_neighbours(system.nbr, kappa)) - 1.0) * cov_s
+        cov = cov + (np.sqrt(kappa[:, None] * _face_neighbours(faces, kappa)) - 1.0) * cov_s
     stats = dict(stats, method=f"blend ({stats['method']} and perturbation)",
                  converged=bool(stats["converged"] and sand["converged"]),
                  n_not_converged=stats["n_not_converged"] + sand["n_not_converged"],
@@ -151,7 +160,7 @@ def _blend_sampled(system, solver, var_b, cov_b, stats, W, D_ii, kappa=None):
     return var.astype(np.float32), cov.astype(np.float32), stats
 
 
-def _add_bias(system, var_b, var, cov, stats, bias, D_ii, kappa=None):
+def _add_bias(system, faces, var_b, var, cov, stats, bias, D_ii, kappa=None):
     """``var + e^2`` and ``cov_ij + e_i e_j``, ``e`` the prior's bias beyond the noise of its
     estimate (:func:`estimate_variance`)."""
     b, b_stats = bias
@@ -161,7 +170,7 @@ def _add_bias(system, var_b, var, cov, stats, bias, D_ii, kappa=None):
         noise = noise * kappa
     e = np.sign(b) * np.sqrt(np.maximum(b * b - noise, 0.0))
     var = (var.astype(np.float64) + e * e).astype(np.float32)
-    cov = (cov.astype(np.float64) + e[:, None] * _face_neighbours(system.nbr, e)).astype(
+    cov = (cov.astype(np.float64) + e[:, None] * _face_neighbours(faces, e)).astype(
         np.float32)
     stats = dict(stats, prior_bias=dict(b_stats, voxels=int(np.count_nonzero(e))))
     return var, cov, stats

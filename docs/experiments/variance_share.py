@@ -23,10 +23,10 @@ import checkout  # noqa: F401,E402  (this checkout's bftaichi first on sys.path)
 from bftaichi.stages import variance  # noqa: E402
 
 
-def _sandwich_only(system, var_b, cov_b, stats, D_ii):
+def _sandwich_only(system, faces, var_b, cov_b, stats, D_ii, kappa=None):
     rho = variance._data_share(system, D_ii)
     var = var_b.astype(np.float64) * rho
-    cov = cov_b.astype(np.float64) * np.sqrt(rho[:, None] * variance._face_neighbours(system.nbr, rho))
+    cov = cov_b.astype(np.float64) * np.sqrt(rho[:, None] * variance._face_neighbours(faces, rho))
     stats = dict(stats, method=f"sandwich only ({stats['method']}; experiment)",
                  mean_data_share=float(rho.mean()) if len(rho) else 0.0)
     return var.astype(np.float32), cov.astype(np.float32), stats
