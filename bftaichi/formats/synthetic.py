@@ -55,6 +55,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import math
+import threading
 from pathlib import Path
 from typing import Iterator
 
@@ -364,7 +365,8 @@ def intrinsics_of(cfg: SyntheticConfig) -> np.ndarray:
 class DepthRenderer:
     """Ray-cast depth images of one triangle mesh (Embree via trimesh, float64 hit depths).
 
-    The Embree scene is built once (on the first render) and reused for every view. Embree finds
+    The Embree scene is built once (on the first render) and reused for every view; renders
+    from several threads (the pipeline reads frames ahead in two) take turns. Embree finds
     the first triangle along each ray in float32; the depth is then the exact float64
     intersection of the ray with that triangle's plane, so flat faces give constant depth to
     ~1e-12 m.
@@ -379,6 +381,7 @@ class DepthRenderer:
 
         self.mesh = mesh
         self._intersector = RayMeshIntersector(mesh)
+        self._lock = threading.Lock()  # its scene is built lazily, by whichever thread is first
         tri = np.asarray(mesh.triangles, dtype=np.float64)  # (F, 3, 3)
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         norm = np.linalg.norm(normal, axis=1, keepdims=True)
@@ -401,7 +404,8 @@ class DepthRenderer:
         dirs_W = (T_W_C[:3, :3] @ dirs_C).T  # (H*W, 3), camera-z component 1
         origin = T_W_C[:3, 3]
         origins = np.broadcast_to(origin, dirs_W.shape)
-        tri = self._intersector.intersects_first(origins, dirs_W)
+        with self._lock:
+            tri = self._intersector.intersects_first(origins, dirs_W)
         depth = np.zeros(width * height, dtype=np.float64)
         hit = np.flatnonzero(tri >= 0)
         if hit.size:

@@ -17,6 +17,7 @@ import dataclasses
 import os
 import platform
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
@@ -152,12 +153,18 @@ def _progress(iterable, total: int, desc: str, enabled: bool, unit: str = "frame
                 leave=False)
 
 
+READERS = 2
+"""Frames read ahead, each by its own thread. Pillow decodes a PNG without the GIL, so with two
+the TSDF pass (2 ms of kernel against ~5 ms of decoding a frame at 2 cm) waits less: the TSDF
+pass with its waits 4.9-5.1 -> 4.2-4.5 s on 500 redkitchen frames (docs/measurements.md)."""
+
+
 class _FrameReader:
-    """Iterate over frames in order while the next frame is read in a background thread.
-    Taichi holds the GIL while a kernel runs (docs/experiments/kernel_gil.py), so the thread
-    reads between kernels and while the loop waits for it; a reader process beside the
-    kernels saved nothing (docs/measurements.md, "Taichi kernels hold the GIL"). Accumulates
-    the seconds spent waiting."""
+    """Iterate over frames in order while the next :data:`READERS` frames are read in
+    background threads. Taichi holds the GIL while a kernel runs
+    (docs/experiments/kernel_gil.py), so the threads read between kernels and while the loop
+    waits for them; a reader process beside the kernels saved nothing (docs/measurements.md,
+    "Taichi kernels hold the GIL"). Accumulates the seconds spent waiting."""
 
     def __init__(self, progress: bool):
         self.progress = progress
@@ -165,14 +172,14 @@ class _FrameReader:
 
     def __call__(self, frames, desc: str):
         n = len(frames)
-        with ThreadPoolExecutor(max_workers=1) as reader:
-            pending = reader.submit(frames.__getitem__, 0) if n else None
+        with ThreadPoolExecutor(max_workers=READERS) as reader:
+            pending = deque(reader.submit(frames.__getitem__, i) for i in range(min(READERS, n)))
             for i in _progress(range(n), n, desc, self.progress):
                 t0 = time.perf_counter()
-                frame = pending.result()
+                frame = pending.popleft().result()
                 self.wait_s += time.perf_counter() - t0
-                if i + 1 < n:
-                    pending = reader.submit(frames.__getitem__, i + 1)
+                if i + READERS < n:
+                    pending.append(reader.submit(frames.__getitem__, i + READERS))
                 yield frame
 
 
