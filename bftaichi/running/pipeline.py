@@ -156,7 +156,7 @@ def _progress(iterable, total: int, desc: str, enabled: bool, unit: str = "frame
 READERS = 2
 """Frames read ahead, each by its own thread. Pillow decodes a PNG without the GIL, so with two
 the TSDF pass (2 ms of kernel against ~5 ms of decoding a frame at 2 cm) waits less: the TSDF
-pass with its waits 4.9-5.1 -> 4.2-4.5 s on 500 redkitchen frames (docs/measurements.md)."""
+pass with its waits 4.9-5.1 -> 4.2-4.7 s on 500 redkitchen frames (docs/measurements.md)."""
 
 
 class _FrameReader:

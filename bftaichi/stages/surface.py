@@ -439,9 +439,10 @@ def sample_field(ijk: np.ndarray, values: np.ndarray, observed: np.ndarray, voxe
     wf = np.where(found, w, 0.0)
     wsum = np.sum(wf, axis=1)
     ok &= wsum > 0
-    for c in range(out.shape[1] if out.ndim == 2 else 1):  # each column as on its own
+    columns = out if out.ndim == 2 else out[:, None]  # a view: (P, 1) of (P,) values
+    for c in range(columns.shape[1]):  # each column as on its own
         vsum = np.sum(wf * gather(c), axis=1)
-        out[(ok, c) if out.ndim == 2 else ok] = (vsum[ok] / wsum[ok]).astype(np.float32)
+        columns[ok, c] = (vsum[ok] / wsum[ok]).astype(np.float32)
     return out
 
 
