@@ -388,6 +388,13 @@ class DepthRenderer:
         self._plane_normal = np.divide(normal, norm, out=np.zeros_like(normal), where=norm > 0)
         self._plane_point = tri[:, 0].copy()
 
+    def __getstate__(self) -> dict:  # pickled for Ray tasks (bftaichi batch): not the lock
+        return {k: v for k, v in self.__dict__.items() if k != "_lock"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
     def render(self, K: np.ndarray, T_W_C: np.ndarray, width: int, height: int) -> np.ndarray:
         """Depth image (height, width) float32 along the camera z axis, metres; 0 where no hit.
 
