@@ -362,11 +362,13 @@ def intrinsics_of(cfg: SyntheticConfig) -> np.ndarray:
 # Rendering
 # --------------------------------------------------------------------------------------------
 
+_EMBREE = threading.Lock()  # reader threads' renders take turns; picklable renderers (Ray)
+
+
 class DepthRenderer:
     """Ray-cast depth images of one triangle mesh (Embree via trimesh, float64 hit depths).
 
-    The Embree scene is built once (on the first render) and reused for every view; renders
-    from several threads (the pipeline reads frames ahead in two) take turns. Embree finds
+    The Embree scene is built once (on the first render) and reused for every view. Embree finds
     the first triangle along each ray in float32; the depth is then the exact float64
     intersection of the ray with that triangle's plane, so flat faces give constant depth to
     ~1e-12 m.
@@ -381,19 +383,11 @@ class DepthRenderer:
 
         self.mesh = mesh
         self._intersector = RayMeshIntersector(mesh)
-        self._lock = threading.Lock()  # its scene is built lazily, by whichever thread is first
         tri = np.asarray(mesh.triangles, dtype=np.float64)  # (F, 3, 3)
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         norm = np.linalg.norm(normal, axis=1, keepdims=True)
         self._plane_normal = np.divide(normal, norm, out=np.zeros_like(normal), where=norm > 0)
         self._plane_point = tri[:, 0].copy()
-
-    def __getstate__(self) -> dict:  # pickled for Ray tasks (bftaichi batch): not the lock
-        return {k: v for k, v in self.__dict__.items() if k != "_lock"}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._lock = threading.Lock()
 
     def render(self, K: np.ndarray, T_W_C: np.ndarray, width: int, height: int) -> np.ndarray:
         """Depth image (height, width) float32 along the camera z axis, metres; 0 where no hit.
@@ -411,7 +405,7 @@ class DepthRenderer:
         dirs_W = (T_W_C[:3, :3] @ dirs_C).T  # (H*W, 3), camera-z component 1
         origin = T_W_C[:3, 3]
         origins = np.broadcast_to(origin, dirs_W.shape)
-        with self._lock:
+        with _EMBREE:  # the scene is built lazily, by whichever thread renders first
             tri = self._intersector.intersects_first(origins, dirs_W)
         depth = np.zeros(width * height, dtype=np.float64)
         hit = np.flatnonzero(tri >= 0)
