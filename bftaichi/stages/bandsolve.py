@@ -90,12 +90,10 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
         misfit["frames"] = len(picked)
         var = var + b2
         if variance:
-            from kernels.probes import FACE_PLUS
+            from .variance import _face_neighbours, _faces
 
-            b = np.sqrt(b2)
-            for e, off in enumerate(FACE_PLUS):
-                j = band.nbr[:, off]  # one pass over the (N, 27) table per axis
-                cov[:, e] = np.where(j >= 0, cov[:, e] + b * b[np.maximum(j, 0)], 0)
+            b, faces = np.sqrt(b2), _faces(band.nbr)
+            cov = np.where(faces >= 0, cov + b[:, None] * _face_neighbours(faces, b), 0)
         var_stats = dict(var_stats, local_noise=misfit)
         lap("misfit")
     return {"mean": mean, "var": np.asarray(var, np.float32),

@@ -22,19 +22,10 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 
-def _kib(keys) -> dict:
-    out = {}
-    with open("/proc/self/status") as f:
-        for line in f:
-            name, _, rest = line.partition(":")
-            if name in keys:
-                out[name] = int(rest.split()[0]) * 1024
-    return out
-
-
 def main(argv) -> int:
     tracemalloc.start(1)
     from bftaichi.cli import main as cli
+    from bftaichi.running.resources import PeakRSS, _status_kib
     from bftaichi.stages import bandsolve
 
     lap = bandsolve.Lap.__call__
@@ -42,13 +33,12 @@ def main(argv) -> int:
 
     def timed(self, name):
         now, peak = tracemalloc.get_traced_memory()
-        st = _kib(("VmHWM", "VmRSS"))
+        st = _status_kib(("VmHWM", "VmRSS"))
         lap(self, name)
         print(f"{name:10s} resident peak {st['VmHWM'] / mib:6.0f} MiB, at its end "
               f"{st['VmRSS'] / mib:6.0f}; numpy peak {peak / mib:6.0f}, at its end "
               f"{now / mib:6.0f}", flush=True)
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
+        PeakRSS._reset()  # the kernel's peak counter to the current resident size
         tracemalloc.reset_peak()
 
     bandsolve.Lap.__call__ = timed
