@@ -182,12 +182,15 @@ def _curvature_weights(mean: ti.types.ndarray(dtype=ti.f32, ndim=1),
                        W_old: ti.types.ndarray(dtype=ti.f32, ndim=2),
                        W_new: ti.types.ndarray(dtype=ti.f32, ndim=2),
                        dW: ti.types.ndarray(dtype=ti.f32, ndim=2), inv_c2: ti.f64,
-                       laplace: ti.i32):
+                       laplace: ti.i32, noise: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                       allow: ti.i32):
     """The weight of each second difference ``d`` of ``mean`` (centred at voxel i, along each
     axis; 0 where it does not exist), ``u = d^2 / c^2``: the robust weight ``w = 1 / (1 + u)``
     (``laplace`` = 0) or the penalty's curvature ``max(1 - u, 0) / (1 + u)^2`` (``laplace`` =
-    1), written to W_new, and its change from W_old to dW. One thread per voxel (gather);
-    W_new may be W_old."""
+    1), written to W_new, and its change from W_old to dW. With ``allow`` (and ``laplace``),
+    ``u = d^2 / (c^2 + a)``, ``a = noise_(j-e) + 4 noise_j + noise_(j+e)`` the variance the
+    voxels' ``noise`` (N,) gives ``d`` (:func:`laplace_curvature_prior`). One thread per voxel
+    (gather); W_new may be W_old."""
     for i in range(nbr.shape[0]):
         for ax in ti.static(range(3)):
             m = nbr[i, ti.static(CENTRE - _AXIS_STRIDE[ax])]
@@ -197,6 +200,9 @@ def _curvature_weights(mean: ti.types.ndarray(dtype=ti.f32, ndim=1),
                 d = ti.cast(mean[m], ti.f64) - 2.0 * ti.cast(mean[i], ti.f64) + ti.cast(
                     mean[p], ti.f64)
                 u = d * d * inv_c2
+                if laplace and allow:
+                    a = noise[m] + 4.0 * noise[i] + noise[p]
+                    u = d * d / (1.0 / inv_c2 + a)
                 w = 1.0 / (1.0 + u)
                 if laplace:
                     w = ti.max(1.0 - u, 0.0) * w * w
@@ -215,7 +221,8 @@ def reweight_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: floa
     _replace_curvature_weights(S, far, nbr, mean, W, W, lam2, scale_m, laplace=0)
 
 
-def laplace_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float) -> np.ndarray:
+def laplace_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float,
+                            noise: np.ndarray | None = None) -> np.ndarray:
     """The robust curvature prior's Laplace approximation at ``mean`` (its MAP): the stencil
     ``S`` and far part ``far``, which hold ``lam2 D^T diag(W) D`` (``W``: the reweighting's
     weights, left unchanged), get the penalty's own curvature instead, in place::
@@ -226,21 +233,35 @@ def laplace_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float
     precision). The reweighting's ``1 / (1 + u)`` is the slope's ratio ``rho'(d) / 2 d``, which
     gives the MAP, not the posterior's spread around it: at a crease or a thin part it keeps
     charging a bend the prior no longer resists, and the variance came out too small there
-    (docs/measurements.md, "The robust prior's variance from its Hessian"). Returns the (N, 3)
-    float32 weights now in ``S``."""
+    (docs/measurements.md, "The robust prior's variance from its Hessian").
+
+    ``noise`` (N,) float64, m^2: each voxel's variance under the data's noise alone (the
+    MAP's, :func:`bftaichi.stages.solve.solve_map`). A second difference of the MAP then
+    counts as a bend only beyond what that noise gives it: ``u = d^2 / (c^2 + a)``, ``a =
+    noise_(j-e) + 4 noise_j + noise_(j+e)`` (the voxels taken as independent). Without it the
+    noisy second differences of a sparse capture's mean reach ``c``, where the Hessian lets go
+    of bends that are not there, and sigma came out too wide (docs/measurements.md, "The
+    robust prior's Hessian with room for the noise"). Returns the (N, 3) float32 weights now
+    in ``S``."""
     W_h = np.empty_like(W)
-    _replace_curvature_weights(S, far, nbr, mean, W, W_h, lam2, scale_m, laplace=1)
+    _replace_curvature_weights(S, far, nbr, mean, W, W_h, lam2, scale_m, laplace=1,
+                               noise=noise)
     return W_h
 
 
-def _replace_curvature_weights(S, far, nbr, mean, W_old, W_new, lam2, scale_m, *, laplace):
+def _replace_curvature_weights(S, far, nbr, mean, W_old, W_new, lam2, scale_m, *, laplace,
+                               noise=None):
     """``S`` and ``far`` (holding ``lam2 D^T diag(W_old) D``) get the weights of
     :func:`_curvature_weights` at ``mean`` instead (written to ``W_new``, which may be
     ``W_old``): one pass for the weights, one adding ``lam2 D^T diag(W_new - W_old) D``."""
     S2, nbr2 = far
     dW = np.empty_like(W_old)
+    if noise is not None and len(noise) != len(mean):
+        raise ValueError(f"noise has {len(noise)} voxels, the mean {len(mean)}")
+    allow = noise is not None
+    noise = (np.ascontiguousarray(noise, np.float64) if allow else np.zeros(1, np.float64))
     _curvature_weights(np.ascontiguousarray(mean, np.float32), nbr, W_old, W_new, dW,
-                       1.0 / float(scale_m) ** 2, laplace)
+                       1.0 / float(scale_m) ** 2, laplace, noise, int(allow))
     _add_curvature_prior(S, nbr, S2, nbr2, float(lam2), dW, 1)
 
 

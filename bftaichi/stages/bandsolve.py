@@ -57,16 +57,13 @@ def solve_band(cfg, band, x0, frames, variance: bool, frame_iter, lap,
         carved = np.zeros(len(band), bool)
         carved[todo] = (n_carved >= 2) & (n_carved >= cfg.prior.carve * free_space.observing())
     observer.release()  # the misfit pass below needs only its lookups
-    data = None
     bias_on = variance and cfg.solver.prior_bias
-    if variance and (cfg.solver.variance != "posterior" or bias_on):  # the data's share
-        from kernels.layout import CENTRE
-
-        W = (S.sum(axis=1, dtype=np.float64).astype(np.float32)
-             if cfg.solver.variance == "blend-sampled" else None)  # its row sums
-        data = (W, S[:, CENTRE].copy())
+    share = variance and (cfg.solver.variance != "posterior" or bias_on)  # the data's share
+    W = (S.sum(axis=1, dtype=np.float64).astype(np.float32)
+         if share and cfg.solver.variance == "blend-sampled" else None)  # its row sums
     lap("observe")
     system = add_prior(S, h_data, band, cfg.prior, cfg.band.stencil, vs)          # step 4
+    data = (W, system.data_diagonal) if share else None
     lap("prior")
     mean, map_stats = solve_map(system, x0, cfg.solver, band, trunc_m=tau,        # step 5
                                 bootstrap_trunc_m=cfg.tsdf.bootstrap_trunc_m,

@@ -323,9 +323,15 @@ def solve_map(system, x0: np.ndarray, solver: SolverConfig, band, *, trunc_m: fl
     h[anchored] -= (k + extra[anchored]) * target[anchored]
     if reweight:  # the variance and the bias's solve see the robust prior's Hessian at the
         # mean; the bias's force, the prior's slope there, its reweighted weights
+        noise = None
+        if prior.noise_allowance and system.data_diagonal is not None:
+            # the MAP's variance under the data's noise, Q^-1 D Q^-1, voxel by voxel (Jacobi):
+            # Q the system the MAP was solved with, its reweighted prior in, the anchors out
+            noise = system.data_diagonal.astype(np.float64) / S[:, CENTRE].astype(
+                np.float64) ** 2
         laplace_curvature_prior(S, system.far, system.nbr, mean, W,
                                 lam2=prior.curvature / voxel_size_m ** 2,
-                                scale_m=prior.curvature_scale * voxel_size_m)
+                                scale_m=prior.curvature_scale * voxel_size_m, noise=noise)
         system.curvature_weights = W
         compact.refill(S, system.far)
     else:
