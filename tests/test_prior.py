@@ -325,8 +325,8 @@ def test_laplace_curvature_with_the_noise_allowance(band):
     """With each voxel's variance under the data's noise, a second difference of the field
     counts as a bend only beyond what that noise gives it: the system holds the reference
     ``lam2 D^T diag(w) D`` with ``u = d^2 / (c^2 + a)``; it is nowhere less stiff than the plain
-    Laplace curvature, and where the noise dwarfs the bends the prior keeps its full strength
-    while a bend far beyond the noise (the crease) is still let go."""
+    Laplace curvature, and where the noise is as large as the bends the prior keeps most of its
+    strength while a bend far beyond the noise (the crease) is still let go."""
     nbr, ijk, c = band["nbr"], band["ijk"], 0.3 * VOXEL
     n = len(ijk)
     crease = (np.abs((ijk[:, 0] + 0.5) * VOXEL) + 0.5 * (ijk[:, 2] + 0.5) * VOXEL
