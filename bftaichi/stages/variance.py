@@ -110,11 +110,7 @@ def _faces(nbr: np.ndarray) -> np.ndarray:
 def _face_neighbours(faces: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(N, 3): ``x`` of each voxel's +x, +y, +z neighbour (``faces``, :func:`_faces`), 0 where
     that neighbour is not in the band."""
-    out = np.empty((len(x), 3), x.dtype)
-    for e in range(3):
-        j = faces[:, e]
-        out[:, e] = np.where(j >= 0, x[j], 0)  # j = -1 reads x[-1], masked
-    return out
+    return np.where(faces >= 0, x[faces], 0).astype(x.dtype, copy=False)  # -1 reads x[-1], masked
 
 
 def _data_share(system, D_ii) -> np.ndarray:
