@@ -18,6 +18,12 @@ from .lookup import BLOCK_CACHE, SAMPLE_ACCEPTED, SAMPLE_GATED, band_index, look
 from .stencil import first_chunk, virtual_iterations
 
 N_HALF = 27 - CENTRE  # accumulated stencil columns: offsets o = 13..26
+#: Columns of a voxel's row of the data term's accumulator: 0..13 the stencil's upper half
+#: (offsets o = 13..26), H_COLUMN = 14 its ``A^T W y``, 15 always 0. 16 int64 are two 64-byte
+#: cache lines: the 8 corners of a sample's cell are four pairs of neighbouring voxels, four
+#: lines a pair (docs/measurements.md, "The accumulator's row: two cache lines").
+ACC_COLUMNS = 16
+H_COLUMN = N_HALF
 
 # Per-frame parameters, one float64 vector (a single cheap kernel argument):
 P_M = 0  # 9: M = R_WC K^-1 / voxel_size, row-major: pixel (u, v) at depth z is at voxel
@@ -167,8 +173,8 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                  mode: ti.template(), base: ti.i32):
     """Strided pixel row ``vs`` of a frame (module docstring, steps 1-5) where ``mask`` is 1
     (``depth``: the frame or a level of its super-pixel pyramid, ``prm`` that level's): each
-    pixel counts its accepted samples, then adds them to ``sink = (S_acc, h_acc)`` (this
-    thread's copy, the voxels ``base ..`` of the flat accumulators: plain int64 adds), or their
+    pixel counts its accepted samples, then adds them to ``sink = (acc,)`` (this thread's
+    copy, the voxels ``base ..`` of the flat accumulator: plain int64 adds), or their
     diagonal ``w a_c^2`` to ``(D_acc,)`` (MODE_DIAGONAL), or (MODE_ROWS) writes each sample to
     ``(row_idx, row_a, row_y, row_w, row_z, row_status)`` at row ``(vs ceil(W / stride) + u /
     stride) (mf + m + 1) + j + mf`` (MODE_MISFIT: :func:`misfit_frame`). Counters to
@@ -319,17 +325,16 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
                                 e = base + idx[c]
                                 D_acc[e] = D_acc[e] + fixed_point(ws * a[c] * a[c])
                     elif accepted:
-                        S_acc, h_acc = ti.static(sink[0], sink[1])
+                        acc = ti.static(sink[0])
                         for ca in ti.static(range(8)):
                             wa = ws * a[ca]
-                            e = base + idx[ca]  # flat: the entry's address computed once
-                            r0 = e * N_HALF
+                            r0 = (base + idx[ca]) * ACC_COLUMNS  # the row, computed once
                             for cb in ti.static(range(ca, 8)):
                                 col = ti.static(column(ca, cb))
                                 # this thread's copy: plain adds, no atomic; no overflow
                                 # test either (Observer.integrate bounds the growth)
-                                S_acc[r0 + col] = S_acc[r0 + col] + fixed_point(wa * a[cb])
-                            h_acc[e] = h_acc[e] + fixed_point(wa * y)
+                                acc[r0 + col] = acc[r0 + col] + fixed_point(wa * a[cb])
+                            acc[r0 + H_COLUMN] = acc[r0 + H_COLUMN] + fixed_point(wa * y)
             if n_acc > 0:
                 n_used += pixels
                 n_acc_row += n_acc
@@ -348,17 +353,16 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
                   prm: _NDA(dtype=ti.f64, ndim=1),
                    block_hash: _NDA(dtype=ti.i64, ndim=1), block_table: _NDA(dtype=ti.i32, ndim=2),
                    ref: _NDA(dtype=ti.f32, ndim=1), stride: ti.i32, m: ti.i32, mf: ti.i32,
-                   n_parts: ti.i32, S_acc: _NDA(dtype=ti.i64, ndim=1),
-                   h_acc: _NDA(dtype=ti.i64, ndim=1),
+                   n_parts: ti.i32, acc: _NDA(dtype=ti.i64, ndim=1),
                    counts: _NDA(dtype=ti.i64, ndim=2), scratch: _NDA(dtype=ti.i32, ndim=1),
                    blocks: _NDA(dtype=ti.i32, ndim=1)):
-    """One frame into the accumulators ``S_acc``/``h_acc`` ((parts, N, 14) and (parts, N),
-    flattened: a flat index is computed once per entry, where a 3-d index reloaded the shape
-    after every add), parallel over strided pixel rows (:func:`observe_row`), each thread into
+    """One frame into the accumulator ``acc`` ((parts, N, ACC_COLUMNS), flattened: a flat
+    index is computed once per row, where a 3-d index reloaded the shape after every add),
+    parallel over strided pixel rows (:func:`observe_row`), each thread into
     its own part (rows ``part, part + n_parts, ...``): integer adds only, bitwise reproducible
     whatever the thread schedule."""
     n_rows = (depth.shape[0] + stride - 1) // stride
-    n_vox = h_acc.shape[0] // n_parts
+    n_vox = acc.shape[0] // (n_parts * ACC_COLUMNS)
     # the parts dealt out like the stencil kernels' chunks (kernels.stencil.first_chunk): each
     # part goes to exactly one virtual iteration (no race) and the parts to different threads
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))
@@ -367,7 +371,7 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
                           first_chunk(t + 1, n_parts, n_virtual)):
             for q in range((n_rows - part + n_parts - 1) // n_parts):  # rows p, p + n_parts, ...
                 observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
-                            stride, m, mf, counts, scratch, blocks, (S_acc, h_acc),
+                            stride, m, mf, counts, scratch, blocks, (acc,),
                             MODE_ACCUMULATE, part * n_vox)
 
 
@@ -487,23 +491,23 @@ def estimate_normals(depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
 def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
               block_table: ti.types.ndarray(dtype=ti.i32, ndim=2),
               ijk: ti.types.ndarray(dtype=ti.i32, ndim=2),
-              S_acc: ti.types.ndarray(dtype=ti.i64, ndim=3),
-              h_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
+              acc: ti.types.ndarray(dtype=ti.i64, ndim=3),
               inv_scale: ti.f64,
               S: ti.types.ndarray(dtype=ti.f32, ndim=2),
               h: ti.types.ndarray(dtype=ti.f32, ndim=1),
               saturated: ti.types.ndarray(dtype=ti.i64, ndim=1)):
-    """Fixed point -> float32 stencil: ``S[i, o] = S_acc[i, o - 13] / scale`` for o >= 13 and the
-    mirror ``S[i, o] = S_acc[j, 13 - o] / scale``, ``j`` = band index of ``ijk_i + offset(o)``
-    (0 if not in the band), for o < 13; ``h = h_acc / scale``; ``saturated[0] +=`` the entries
+    """Fixed point -> float32 stencil, ``acc`` (parts, N, ACC_COLUMNS) summed over its parts:
+    ``S[i, o] = acc[i, o - 13] / scale`` for o >= 13 and the mirror ``S[i, o] = acc[j, 13 - o]
+    / scale``, ``j`` = band index of ``ijk_i + offset(o)`` (0 if not in the band), for o < 13;
+    ``h = acc[i, H_COLUMN] / scale``; ``saturated[0] +=`` the entries
     beyond SATURATION (:func:`kernels.fixedpoint.count_saturated`). Deterministic (reads,
     integer atomics)."""
     for i in range(S.shape[0]):
-        n_sat = saturated_entries(S_acc, h_acc, i)
+        n_sat = saturated_entries(acc, i)
         if n_sat > 0:
             ti.atomic_add(saturated[0], n_sat)
         for o in range(CENTRE, 27):  # a run-time loop: unrolled, it was 14 copies to build
-            S[i, o] = ti.cast(ti.cast(part_sum(S_acc, i, o - CENTRE), ti.f64) * inv_scale, ti.f32)
+            S[i, o] = ti.cast(ti.cast(part_sum(acc, i, o - CENTRE), ti.f64) * inv_scale, ti.f32)
         v = ti.Vector([ijk[i, 0], ijk[i, 1], ijk[i, 2]])
         b = ti.Vector([v[0] // BLOCK, v[1] // BLOCK, v[2] // BLOCK])
         row = block_row(block_keys, b[0], b[1], b[2])  # >= 0: voxel i is in the band
@@ -518,12 +522,9 @@ def finalize_stencil(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
                 j = band_index(block_keys, block_table, v[0] + d[0], v[1] + d[1], v[2] + d[2])
             val = 0.0
             if j >= 0:
-                val = ti.cast(ti.cast(part_sum(S_acc, j, CENTRE - o), ti.f64) * inv_scale, ti.f32)
+                val = ti.cast(ti.cast(part_sum(acc, j, CENTRE - o), ti.f64) * inv_scale, ti.f32)
             S[i, o] = val
-        h_i = ti.i64(0)
-        for p in range(h_acc.shape[0]):
-            h_i += h_acc[p, i]
-        h[i] = ti.cast(ti.cast(h_i, ti.f64) * inv_scale, ti.f32)
+        h[i] = ti.cast(ti.cast(part_sum(acc, i, H_COLUMN), ti.f64) * inv_scale, ti.f32)
 
 
 @ti.kernel

@@ -65,29 +65,30 @@ def part_sum(acc: ti.template(), i: ti.i32, c: ti.i32) -> ti.i64:
 
 
 @ti.func
-def saturated_entries(S_acc: ti.template(), h_acc: ti.template(), i: ti.i32) -> ti.i64:
-    """How many of voxel ``i``'s accumulator entries (every part) are beyond SATURATION."""
+def saturated_entries(acc: ti.template(), i: ti.i32) -> ti.i64:
+    """How many of voxel ``i``'s accumulator entries ``acc[p, i, :]`` (every part p) are
+    beyond SATURATION."""
     n = ti.i64(0)
-    for p in range(S_acc.shape[0]):
-        for c in range(S_acc.shape[2]):
-            n += ti.cast(ti.abs(S_acc[p, i, c]) > ti.i64(SATURATION), ti.i64)
-        n += ti.cast(ti.abs(h_acc[p, i]) > ti.i64(SATURATION), ti.i64)
+    for p in range(acc.shape[0]):
+        for c in range(acc.shape[2]):
+            n += ti.cast(ti.abs(acc[p, i, c]) > ti.i64(SATURATION), ti.i64)
     return n
 
 
 @ti.kernel
-def count_saturated(S_acc: ti.types.ndarray(dtype=ti.i64, ndim=3),
-                    h_acc: ti.types.ndarray(dtype=ti.i64, ndim=2),
+def count_saturated(acc: ti.types.ndarray(dtype=ti.i64, ndim=3),
                     saturated: ti.types.ndarray(dtype=ti.i64, ndim=1)):
-    """``saturated[0] +=`` the accumulator entries beyond SATURATION (integer atomics)."""
-    for i in range(S_acc.shape[1]):
-        n = saturated_entries(S_acc, h_acc, i)
+    """``saturated[0] +=`` the entries of ``acc`` (parts, N, columns) beyond SATURATION
+    (integer atomics)."""
+    for i in range(acc.shape[1]):
+        n = saturated_entries(acc, i)
         if n > 0:
             ti.atomic_add(saturated[0], n)
 
 
-def saturated_count(S_acc: np.ndarray, h_acc: np.ndarray) -> int:
-    """How many accumulator entries (every part) are beyond SATURATION: one kernel pass."""
+def saturated_count(acc: np.ndarray) -> int:
+    """How many entries of the accumulator ``acc`` (parts, N, columns) are beyond
+    SATURATION: one kernel pass."""
     found = np.zeros(1, np.int64)
-    count_saturated(S_acc, h_acc, found)
+    count_saturated(acc, found)
     return int(found[0])

@@ -91,9 +91,9 @@ around at 2^63 unseen (for frames under ~2^30 / (mf + m + 1) pixels): a saturati
 0 guarantees exact sums. Integer addition is associative, so the accumulated arrays are
 bitwise identical whatever the thread schedule and thread count (and the frames' order).
 
-Layout of the accumulators: ``S_acc`` (parts, N, 14) int64, column ``o - 13`` for ``o =
-13..26``; ``h_acc`` (parts, N) int64; the frame kernels take flat views (docs/measurements.md,
-"Flat indices in the frame kernels"). Per-row counters: ``counts`` (rows, N_COUNTS) int64.
+Layout of the accumulator: ``acc`` (parts, N, 16) int64, per voxel column ``o - 13`` for ``o =
+13..26``, then ``A^T W y`` and a 0: a row is two cache lines (:data:`kernels.dataterm.ACC_COLUMNS`);
+the frame kernels take a flat view. Per-row counters: ``counts`` (rows, N_COUNTS) int64.
 
 Cost (one launch per pyramid level, each thread taking every parts-th pixel row): per pixel a
 normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 adds (the upper
@@ -110,11 +110,11 @@ import math
 import numpy as np
 import taichi as ti
 
-from .dataterm import (C_SATURATED, COUNT_NAMES, N_COUNTS, N_HALF, N_PARAMS, P_A, P_B, P_COS_MIN,
+from .dataterm import (C_SATURATED, COUNT_NAMES, N_COUNTS, N_PARAMS, P_A, P_B, P_COS_MIN,
                        P_AGGREGATE, P_BEHIND, P_GATE, P_INV_VOXEL, P_JUMP, P_K, P_M,
                        P_NORMAL_NOISE, P_O, P_PIXELS, P_R, P_RADIUS, P_SCALE, P_SHARE, P_SPACING,
                        P_VAR_AXIAL, P_VAR_CORR, P_VAR_EXTRA, P_Z0, ROW_ACCEPTED, ROW_DROPPED,
-                       MISFIT_COLUMNS, MISFIT_SCALE, MISFIT_UNITS, estimate_normals,
+                       ACC_COLUMNS, MISFIT_COLUMNS, MISFIT_SCALE, MISFIT_UNITS, estimate_normals,
                        finalize_stencil, misfit_frame, observe_frame, observe_rows, superpixels,
                        window_sums)
 from .fixedpoint import (FRACTION_BITS, GROWTH_LIMIT, accumulator_parts, growth_bound,
@@ -178,7 +178,7 @@ class Observer:
             neighbouring depths still count as one surface in the normal estimate, degrees.
 
     Raises ValueError for inconsistent inputs (the weight needs a floor: one of ``depth_a_m``,
-    ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 120
+    ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 128
     bytes per band voxel per CPU thread (int64 accumulators, one copy per thread, at most
     MAX_PARTS; :meth:`release` drops them) plus 16 (ijk, the gate's float32 reference); the
     misfit pass adds 24 per voxel per thread.
@@ -286,8 +286,7 @@ class Observer:
         # first touch them (writing 0 over 420 MB took 1.1 s on a 1.86M-voxel band); numpy,
         # not ti.ndarray: what release() drops goes back to the system
         n = max(self.n_voxels, 1)
-        self.S_acc = zeros_aligned((self.parts, n, N_HALF), np.int64)
-        self.h_acc = zeros_aligned((self.parts, n), np.int64)
+        self.acc = zeros_aligned((self.parts, n, ACC_COLUMNS), np.int64)
         self.counts = np.zeros(N_COUNTS, np.int64)
         self.frames = 0
         self._unchecked = 0.0  # bound on any entry's growth since the last saturation count
@@ -295,17 +294,17 @@ class Observer:
             self._R_acc = zeros_aligned(self._R_acc.shape, np.int64)
 
     def release(self) -> None:
-        """Drop the data term's accumulators (120 bytes per voxel per thread) once
+        """Drop the data term's accumulator (128 bytes per voxel per thread) once
         :meth:`finalize` has given what they hold: :meth:`misfit` and :meth:`frame_rows` do not
         need them. :meth:`integrate`, :meth:`diagonal` and :meth:`finalize` then raise until
         :meth:`reset`."""
-        self.S_acc = self.h_acc = None
+        self.acc = None
         free_compile_arguments()  # else the compiling calls' references keep them resident
 
-    def _data_term(self) -> tuple:
-        if self.S_acc is None:
+    def _data_term(self) -> np.ndarray:
+        if self.acc is None:
             raise RuntimeError("Observer.release() dropped the data term; reset() first")
-        return self.S_acc, self.h_acc
+        return self.acc
 
     # -- per frame ---------------------------------------------------------------------------
     def _frame_params(self, depth_m, K, T_W_C, sigma_pose_m):
@@ -424,7 +423,7 @@ class Observer:
         One kernel launch. Deterministic (integer atomics).
         """
         stride = self._check_stride(stride)
-        S_acc, h_acc = self._data_term()
+        acc = self._data_term()
         depth, prm = self._frame_params(depth_m, K, T_W_C, sigma_pose_m)
         frame = np.zeros(N_COUNTS, np.int64)
         growth = growth_bound(depth.shape, *prm[P_K:P_K + 4], prm[P_SPACING], prm[P_SHARE],
@@ -435,7 +434,7 @@ class Observer:
             if self.n_voxels:
                 observe_frame(image, mask, prm_l, self.block_hash, self.block_table,
                               self.reference, stride, self.m, self.mf, self.parts,
-                              S_acc.reshape(-1), h_acc.reshape(-1), counts, *scratch)
+                              acc.reshape(-1), counts, *scratch)
             frame += counts.sum(axis=0)
         self.counts += frame
         self.frames += 1
@@ -445,7 +444,7 @@ class Observer:
     def _count_saturated(self, found: int | None = None) -> int:
         """Count the entries beyond 2^60 (or take finalize's count); ``counts`` keeps the max."""
         if found is None:
-            found = saturated_count(*self._data_term()) if self.n_voxels else 0
+            found = saturated_count(self._data_term()) if self.n_voxels else 0
         self.counts[C_SATURATED] = max(self.counts[C_SATURATED], int(found))
         self._unchecked = 0.0
         return found
@@ -579,7 +578,7 @@ class Observer:
         if not self.n_voxels:
             return np.zeros(0)
         self._count_saturated()
-        return self._data_term()[0][:, :, 0].sum(axis=0) / self.fixed_scale
+        return self._data_term()[:, :, 0].sum(axis=0) / self.fixed_scale
 
     def finalize(self) -> tuple[np.ndarray, np.ndarray, dict]:
         """The data term so far: ``S_data`` (N, 27) float32 (stencil of A^T W A, symmetric:
@@ -592,7 +591,7 @@ class Observer:
         h = np.zeros(N, np.float32)
         if N:
             found = np.zeros(1, np.int64)
-            finalize_stencil(self.block_keys, self.block_table, self.ijk, *self._data_term(),
+            finalize_stencil(self.block_keys, self.block_table, self.ijk, self._data_term(),
                              1.0 / self.fixed_scale, S, h, found)
             self._count_saturated(found[0])
         stats = {"frames": self.frames, **dict(zip(COUNT_NAMES, self.counts.tolist())),

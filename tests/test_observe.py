@@ -134,9 +134,9 @@ def test_one_frame_moves_no_entry_beyond_its_growth_bound(sphere):
     band, frames = sphere
     obs = band.observer()
     for frame in frames:
-        before = obs.S_acc.copy(), obs.h_acc.copy()
+        before = obs.acc.copy()
         obs.integrate(frame.depth_m, frame.K, frame.T_W_C)
-        moved = max(np.abs(obs.S_acc - before[0]).max(), np.abs(obs.h_acc - before[1]).max())
+        moved = np.abs(obs.acc - before).max()
         (fx, fy), (cx, cy) = np.diag(frame.K)[:2], frame.K[:2, 2]
         assert 0 < moved <= growth_bound(frame.depth_m.shape, fx, fy, cx, cy, obs.spacing_m,
                                          obs.share, obs.m, obs.mf)
@@ -151,8 +151,8 @@ def test_saturated_entries_are_counted_before_they_can_wrap(sphere, monkeypatch)
     f = frames[0]
     obs = band.observer()
     assert obs.integrate(f.depth_m, f.K, f.T_W_C)["saturated"] == 0
-    obs.h_acc[0, 3] = -(1 << 60) - 1
-    obs.S_acc[-1, 7, 2] = (1 << 60) + 1
+    obs.acc[0, 3, 14] = -(1 << 60) - 1  # an entry of A^T W y
+    obs.acc[-1, 7, 2] = (1 << 60) + 1  # one of the stencil
     assert obs.integrate(f.depth_m, f.K, f.T_W_C)["saturated"] == 0  # far from the limit
     monkeypatch.setattr(observe, "GROWTH_LIMIT", 1.25 * obs._unchecked)  # 2 frames in, 3rd passes
     assert obs.integrate(f.depth_m, f.K, f.T_W_C)["saturated"] == 2  # the count ran first

@@ -320,10 +320,10 @@ def _stage_bytes(n_band: float, n_obs: float, pool_blocks: int, cand_blocks: flo
     # per band voxel ~205 B (compaction temporaries, nbr (27,) i32, ijk, tsdf, weight, core)
     out["band"] = persist + cand_blocks * BLOCK_VOXELS * 14 + 205 * N
     band = 133 * N + band_blocks * BLOCK_VOXELS * 4  # ijk, nbr, tsdf, weight, core, x0; table
-    # observe: the Observer's 120 B per voxel per thread (S_acc (14,) i64 and h_acc i64, one
+    # observe: the Observer's 128 B per voxel per thread (its accumulator row: 16 i64, one
     # copy per thread, at most 4) and 16 B (ijk, reference f32); finalize adds S (27,) f32
     # and h (112 B) plus its scratch
-    obs = 120 * accumulator_parts() + 16
+    obs = 128 * accumulator_parts() + 16
     out["observe"] = persist + band + obs * N + 112 * N
     # the Observer drops its accumulators after observing (Observer.release)
     post = band + 16 * N + 112 * N + 24 * N  # + prior's b0, h, the MAP mean
