@@ -24,6 +24,12 @@ N_HALF = 27 - CENTRE  # accumulated stencil columns: offsets o = 13..26
 #: lines a pair (docs/measurements.md, "The accumulator's row: two cache lines").
 ACC_COLUMNS = 16
 H_COLUMN = N_HALF
+#: The frame kernels deal the pixel rows out to the parts (threads) in runs of this many
+#: consecutive rows (part p: rows 4p..4p+3, then 4(p + parts).. and so on): neighbouring rows
+#: meet the same voxels, so a part's next row finds its rows of the accumulator in cache
+#: (docs/measurements.md, "The accumulator's row: two cache lines"; one row at a time, the
+#: parts took turns row by row).
+ROW_RUN = 4
 
 # Per-frame parameters, one float64 vector (a single cheap kernel argument):
 P_M = 0  # 9: M = R_WC K^-1 / voxel_size, row-major: pixel (u, v) at depth z is at voxel
@@ -348,6 +354,21 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
     counts[vs, C_GATED] = n_gate
 
 
+@ti.func
+def part_rows(n_rows: ti.i32, n_parts: ti.i32) -> ti.i32:
+    """Iterations of a part's loop over its rows (:func:`part_row`; the last may pass
+    ``n_rows``)."""
+    span = ROW_RUN * n_parts
+    return (n_rows + span - 1) // span * ROW_RUN
+
+
+@ti.func
+def part_row(q: ti.i32, part: ti.i32, n_parts: ti.i32) -> ti.i32:
+    """The ``q``-th pixel row of ``part``: runs of ROW_RUN consecutive rows dealt out to the
+    ``n_parts`` parts in turn (every row to exactly one part)."""
+    return q // ROW_RUN * (ROW_RUN * n_parts) + part * ROW_RUN + q % ROW_RUN
+
+
 @ti.kernel
 def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim=2),
                   prm: _NDA(dtype=ti.f64, ndim=1),
@@ -359,8 +380,8 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
     """One frame into the accumulator ``acc`` ((parts, N, ACC_COLUMNS), flattened: a flat
     index is computed once per row, where a 3-d index reloaded the shape after every add),
     parallel over strided pixel rows (:func:`observe_row`), each thread into
-    its own part (rows ``part, part + n_parts, ...``): integer adds only, bitwise reproducible
-    whatever the thread schedule."""
+    its own part (runs of ROW_RUN rows, :func:`part_row`): integer adds only, bitwise
+    reproducible whatever the thread schedule."""
     n_rows = (depth.shape[0] + stride - 1) // stride
     n_vox = acc.shape[0] // (n_parts * ACC_COLUMNS)
     # the parts dealt out like the stencil kernels' chunks (kernels.stencil.first_chunk): each
@@ -369,10 +390,12 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
-            for q in range((n_rows - part + n_parts - 1) // n_parts):  # rows p, p + n_parts, ...
-                observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
-                            stride, m, mf, counts, scratch, blocks, (acc,),
-                            MODE_ACCUMULATE, part * n_vox)
+            for q in range(part_rows(n_rows, n_parts)):
+                r = part_row(q, part, n_parts)
+                if r < n_rows:
+                    observe_row(r, depth, mask, prm, block_hash, block_table, ref,
+                                stride, m, mf, counts, scratch, blocks, (acc,),
+                                MODE_ACCUMULATE, part * n_vox)
 
 
 @ti.kernel
@@ -551,7 +574,9 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
-            for q in range((n_rows - part + n_parts - 1) // n_parts):
-                observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
-                            stride, m, mf, counts, scratch, blocks, (mu, var, R_acc),
-                            MODE_MISFIT, part * n_vox)
+            for q in range(part_rows(n_rows, n_parts)):
+                r = part_row(q, part, n_parts)
+                if r < n_rows:
+                    observe_row(r, depth, mask, prm, block_hash, block_table, ref, stride, m,
+                                mf, counts, scratch, blocks, (mu, var, R_acc), MODE_MISFIT,
+                                part * n_vox)

@@ -5,12 +5,12 @@ The same per-row code as the data term (:func:`kernels.dataterm.observe_row`, mo
 ``MODE_DIAGONAL``): the same samples, rows, gate and weights, and the same fixed-point
 rounding of each contribution ``w a_c a_c``, so the diagonal equals bit for bit that of the
 full accumulators (:meth:`~kernels.observe.Observer.diagonal` after ``integrate``), at 8 adds
-a sample instead of 44 and 8 bytes a voxel per thread instead of 120.
+a sample instead of 44 and 8 bytes a voxel per thread instead of 128.
 """
 
 import taichi as ti
 
-from .dataterm import MODE_DIAGONAL, observe_row
+from .dataterm import MODE_DIAGONAL, observe_row, part_row, part_rows
 from .stencil import first_chunk, virtual_iterations
 
 _NDA = ti.types.ndarray
@@ -34,7 +34,9 @@ def information_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8,
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
-            for q in range((n_rows - part + n_parts - 1) // n_parts):
-                observe_row(part + q * n_parts, depth, mask, prm, block_hash, block_table, ref,
-                            stride, m, mf, counts, scratch, blocks, (D_acc,), MODE_DIAGONAL,
-                            part * n_vox)
+            for q in range(part_rows(n_rows, n_parts)):
+                r = part_row(q, part, n_parts)
+                if r < n_rows:
+                    observe_row(r, depth, mask, prm, block_hash, block_table, ref, stride, m,
+                                mf, counts, scratch, blocks, (D_acc,), MODE_DIAGONAL,
+                                part * n_vox)
