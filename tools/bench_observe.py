@@ -20,7 +20,8 @@ whole observation pass: at most 1.5x the TSDF), and the rays model's accepted sa
 (the super-pixels of ``observation.aggregate`` set how many rays a frame casts). The machine may
 be shared: the four run interleaved, frame by frame.
 
-``--loop SECONDS`` instead calls the rays model's ``Observer.integrate`` on the timed frames
+``--loop SECONDS`` instead calls the rays model's ``Observer.integrate`` (with ``--misfit``,
+``Observer.misfit``, the local-noise pass, against the bootstrap TSDF) on the timed frames
 round and round for that long and prints its mean milliseconds per frame: one figure steady
 enough to compare two builds by alternating runs (one run of the table above moved by 20 %
 between identical builds), and a process to sample with ``perf record -p PID`` (printed
@@ -52,6 +53,9 @@ def main(argv=None) -> int:
     ap.add_argument("--timed", type=int, default=50, help="time this many of them, evenly spread")
     ap.add_argument("--loop", type=float, default=0.0, metavar="SECONDS",
                     help="loop the rays model over the timed frames this long, print ms per frame")
+    ap.add_argument("--misfit", action="store_true",
+                    help="with --loop: loop the local-noise misfit pass instead (the bootstrap "
+                    "TSDF as the mean)")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="config override (repeatable), e.g. observation.aggregate=0.5")
     args = ap.parse_args(argv)
@@ -68,7 +72,7 @@ def main(argv=None) -> int:
     recon = bf.Reconstructor(cfg)
     for f in ds:
         recon.integrate(f.depth_m, f.K, f.T_W_C, name=f.name)
-    band, _ = build_band(recon.voxels, cfg.tsdf.bootstrap_trunc_m)
+    band, x0 = build_band(recon.voxels, cfg.tsdf.bootstrap_trunc_m)
     frames = local_frames(recon.frames, recon.origin)
     picks = np.unique(np.linspace(0, len(frames) - 1, args.timed).round().astype(int))
     vs, tau = cfg.tsdf.voxel_size_m, cfg.tsdf.trunc_m
@@ -85,7 +89,12 @@ def main(argv=None) -> int:
         obs.integrate(f0.depth_m, f0.K, f0.T_W_C)
     tsdf.integrate(f0.depth_m, f0.K, f0.T_W_C, name="warm-up")
     if args.loop > 0:
-        return _loop(observers["rays"], [frames[int(i)] for i in picks], args.loop, args.sets)
+        fields = None
+        if args.misfit:  # the bootstrap as the mean, a quarter voxel^2 as its variance
+            fields = (x0, np.full(len(band), 0.25 * vs * vs, np.float32))
+            observers["rays"].misfit(f0.depth_m, f0.K, f0.T_W_C, *fields)  # compile
+        return _loop(observers["rays"], [frames[int(i)] for i in picks], args.loop, args.sets,
+                     fields)
     ms = {"tsdf": [], "rays": [], "voxels": [], "carve": []}
     samples = {"rays": []}  # the voxel model observes voxels, not samples
     for n, i in enumerate(picks):
@@ -114,18 +123,23 @@ def main(argv=None) -> int:
     return 0
 
 
-def _loop(observer, frames, seconds: float, sets) -> int:
-    """``--loop``: ``observer.integrate`` over ``frames``, round and round for ``seconds``."""
+def _loop(observer, frames, seconds: float, sets, fields=None) -> int:
+    """``--loop``: ``observer.integrate`` over ``frames`` (``observer.misfit`` against
+    ``fields = (mu, var)`` when given), round and round for ``seconds``."""
     import os
 
     print(f"pid {os.getpid()}: looping for {seconds:g} s", flush=True)
     t0, cpu0, n = time.perf_counter(), time.process_time(), 0
     while time.perf_counter() - t0 < seconds:
         for f in frames:
-            observer.integrate(f.depth_m, f.K, f.T_W_C)
+            if fields is None:
+                observer.integrate(f.depth_m, f.K, f.T_W_C)
+            else:
+                observer.misfit(f.depth_m, f.K, f.T_W_C, *fields)
             n += 1
     cpu = 1e3 * (time.process_time() - cpu0) / n  # every thread's CPU time
-    print(f"{' '.join(sets) or 'defaults'}: rays {1e3 * (time.perf_counter() - t0) / n:.2f} ms "
+    what = "rays" if fields is None else "misfit"
+    print(f"{' '.join(sets) or 'defaults'}: {what} {1e3 * (time.perf_counter() - t0) / n:.2f} ms "
           f"per frame ({n} frames; {cpu:.2f} ms of CPU time)")
     return 0
 
