@@ -95,7 +95,7 @@ Layout of the accumulator: ``acc`` (parts, N, 16) int64, per voxel column ``o - 
 13..26``, then ``A^T W y`` and a 0: a row is two cache lines (:data:`kernels.dataterm.ACC_COLUMNS`);
 the frame kernels take a flat view. Per-row counters: ``counts`` (rows, N_COUNTS) int64.
 
-Cost (one launch per pyramid level, each thread taking every parts-th pixel row): per pixel a
+Cost (one launch per pyramid level, each thread taking runs of 4 pixel rows): per pixel a
 normal (5 depth reads), per sample a cell lookup and, if accepted, 36 + 8 int64 adds (the upper
 half of ``a a^T`` and ``a y``). The lookup (:func:`kernels.lookup.look_up_sample`) reads the
 block table through a per-row cache of the blocks around sample j's block, looking a block up
@@ -181,7 +181,7 @@ class Observer:
     ``sigma_pose_m``, ``sigma_model_m`` > 0). Taichi must be initialised first. Memory: 128
     bytes per band voxel per CPU thread (int64 accumulators, one copy per thread, at most
     MAX_PARTS; :meth:`release` drops them) plus 16 (ijk, the gate's float32 reference); the
-    misfit pass adds 24 per voxel per thread.
+    misfit pass adds 56 per voxel per thread.
     """
 
     def __init__(self, block_keys: np.ndarray, block_table: np.ndarray, n_voxels: int,
