@@ -227,3 +227,24 @@ def test_bench_pose_update_checks_exactness_on_real_frames():
     assert "2 poses, the solve after the update: band" in out
     assert "posterior: max |mean difference| 0.00e+00 voxel" in out  # the solve after it too
     assert len([ln for ln in out.splitlines() if "-> ratio" in ln]) == 2  # TSDF only, + solve
+
+
+def test_alternate_runs_a_command_in_each_checkout_in_turn(tmp_path):
+    """Two directories whose command prints a different figure: each round runs both in turn,
+    in its own directory, and the table holds each one's values and the ratio of medians; a
+    run that prints no figure stops the series with a non-zero exit naming its directory."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d, ms in ((a, "20.0"), (b, "15.0")):
+        d.mkdir()
+        (d / "figure.txt").write_text(ms)
+    command = [sys.executable, "-c",
+               "print(f'defaults: rays {open(\"figure.txt\").read()} ms per frame')"]
+    out = _run([TOOLS / "alternate.py", a, b, "--rounds", "3", "--", *command])
+    order = [ln.split(", ")[1].split(":")[0] for ln in out.splitlines() if ln.startswith("round")]
+    assert order == [str(a), str(b)] * 3
+    assert f"| {a} | 20.00 | 20.00 | 20.00 | 1.000 | 20 20 20 |" in out
+    assert f"| {b} | 15.00 | 15.00 | 15.00 | 0.750 | 15 15 15 |" in out
+    (b / "figure.txt").write_text("no figure")
+    proc = subprocess.run([sys.executable, TOOLS / "alternate.py", a, b, "--", *command],
+                          capture_output=True, text=True, cwd=ROOT)  # the dirs end at --
+    assert proc.returncode == 1 and str(b) in proc.stderr and "no match" in proc.stderr
