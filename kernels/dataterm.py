@@ -355,18 +355,21 @@ def observe_row(vs: ti.i32, depth: ti.template(), mask: ti.template(), prm: ti.t
 
 
 @ti.func
-def part_rows(n_rows: ti.i32, n_parts: ti.i32) -> ti.i32:
-    """Iterations of a part's loop over its rows (:func:`part_row`; the last may pass
-    ``n_rows``)."""
+def observe_part(part: ti.i32, n_parts: ti.i32, n_vox: ti.i32, depth: ti.template(),
+                 mask: ti.template(), prm: ti.template(), block_hash: ti.template(),
+                 block_table: ti.template(), ref: ti.template(), stride: ti.i32, m: ti.i32,
+                 mf: ti.i32, counts: ti.template(), scratch: ti.template(),
+                 blocks: ti.template(), sink: ti.template(), mode: ti.template()):
+    """:func:`observe_row` on every strided pixel row of ``part`` (of ``n_parts``), into its
+    copy of the sums (voxels ``part * n_vox ..``): runs of ROW_RUN consecutive rows dealt out
+    to the parts in turn, every row to exactly one part (the frame kernels' one loop)."""
+    n_rows = (depth.shape[0] + stride - 1) // stride
     span = ROW_RUN * n_parts
-    return (n_rows + span - 1) // span * ROW_RUN
-
-
-@ti.func
-def part_row(q: ti.i32, part: ti.i32, n_parts: ti.i32) -> ti.i32:
-    """The ``q``-th pixel row of ``part``: runs of ROW_RUN consecutive rows dealt out to the
-    ``n_parts`` parts in turn (every row to exactly one part)."""
-    return q // ROW_RUN * (ROW_RUN * n_parts) + part * ROW_RUN + q % ROW_RUN
+    for q in range((n_rows + span - 1) // span * ROW_RUN):
+        r = q // ROW_RUN * span + part * ROW_RUN + q % ROW_RUN
+        if r < n_rows:
+            observe_row(r, depth, mask, prm, block_hash, block_table, ref, stride, m, mf,
+                        counts, scratch, blocks, sink, mode, part * n_vox)
 
 
 @ti.kernel
@@ -380,9 +383,8 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
     """One frame into the accumulator ``acc`` ((parts, N, ACC_COLUMNS), flattened: a flat
     index is computed once per row, where a 3-d index reloaded the shape after every add),
     parallel over strided pixel rows (:func:`observe_row`), each thread into
-    its own part (runs of ROW_RUN rows, :func:`part_row`): integer adds only, bitwise
+    its own part (runs of ROW_RUN rows, :func:`observe_part`): integer adds only, bitwise
     reproducible whatever the thread schedule."""
-    n_rows = (depth.shape[0] + stride - 1) // stride
     n_vox = acc.shape[0] // (n_parts * ACC_COLUMNS)
     # the parts dealt out like the stencil kernels' chunks (kernels.stencil.first_chunk): each
     # part goes to exactly one virtual iteration (no race) and the parts to different threads
@@ -390,12 +392,8 @@ def observe_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndi
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
-            for q in range(part_rows(n_rows, n_parts)):
-                r = part_row(q, part, n_parts)
-                if r < n_rows:
-                    observe_row(r, depth, mask, prm, block_hash, block_table, ref,
-                                stride, m, mf, counts, scratch, blocks, (acc,),
-                                MODE_ACCUMULATE, part * n_vox)
+            observe_part(part, n_parts, n_vox, depth, mask, prm, block_hash, block_table, ref,
+                         stride, m, mf, counts, scratch, blocks, (acc,), MODE_ACCUMULATE)
 
 
 @ti.kernel
@@ -568,15 +566,10 @@ def misfit_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8, ndim
     its square is), over the accepted samples k within ``MISFIT_NEAR`` voxels of their pixel's
     surface (as :func:`observe_frame`): ``r_k = y_k - a_k . mu``, ``sigma_k`` its noise, ``s_k =
     w_k sigma_k^2`` its share of its pixel. Per-thread integer adds."""
-    n_rows = (depth.shape[0] + stride - 1) // stride
     n_vox = R_acc.shape[0] // (n_parts * MISFIT_COLUMNS)
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))  # as in observe_frame
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
-            for q in range(part_rows(n_rows, n_parts)):
-                r = part_row(q, part, n_parts)
-                if r < n_rows:
-                    observe_row(r, depth, mask, prm, block_hash, block_table, ref, stride, m,
-                                mf, counts, scratch, blocks, (mu, var, R_acc), MODE_MISFIT,
-                                part * n_vox)
+            observe_part(part, n_parts, n_vox, depth, mask, prm, block_hash, block_table, ref,
+                         stride, m, mf, counts, scratch, blocks, (mu, var, R_acc), MODE_MISFIT)

@@ -10,7 +10,7 @@ a sample instead of 44 and 8 bytes a voxel per thread instead of 128.
 
 import taichi as ti
 
-from .dataterm import MODE_DIAGONAL, observe_row, part_row, part_rows
+from .dataterm import MODE_DIAGONAL, observe_part
 from .stencil import first_chunk, virtual_iterations
 
 _NDA = ti.types.ndarray
@@ -28,15 +28,10 @@ def information_frame(depth: _NDA(dtype=ti.f32, ndim=2), mask: _NDA(dtype=ti.i8,
     :func:`kernels.dataterm.observe_frame`), each thread into its own part
     (rows dealt out as in :func:`kernels.dataterm.observe_frame`). Integer adds without
     atomics: deterministic."""
-    n_rows = (depth.shape[0] + stride - 1) // stride
     n_vox = D_acc.shape[0] // n_parts
     n_virtual = ti.max(n_parts, ti.static(virtual_iterations()))
     for t in range(n_virtual):
         for part in range(first_chunk(t, n_parts, n_virtual),
                           first_chunk(t + 1, n_parts, n_virtual)):
-            for q in range(part_rows(n_rows, n_parts)):
-                r = part_row(q, part, n_parts)
-                if r < n_rows:
-                    observe_row(r, depth, mask, prm, block_hash, block_table, ref, stride, m,
-                                mf, counts, scratch, blocks, (D_acc,), MODE_DIAGONAL,
-                                part * n_vox)
+            observe_part(part, n_parts, n_vox, depth, mask, prm, block_hash, block_table, ref,
+                         stride, m, mf, counts, scratch, blocks, (D_acc,), MODE_DIAGONAL)

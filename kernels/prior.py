@@ -241,7 +241,7 @@ def laplace_curvature_prior(S, far, nbr, mean, W, *, lam2: float, scale_m: float
     noise_(j-e) + 4 noise_j + noise_(j+e)`` (the voxels taken as independent). Without it the
     noisy second differences of a sparse capture's mean reach ``c``, where the Hessian lets go
     of bends that are not there, and sigma came out too wide (docs/measurements.md, "The
-    robust prior's Hessian with room for the noise"). Returns the (N, 3) float32 weights now
+    MAP's noise in the robust prior's Hessian"). Returns the (N, 3) float32 weights now
     in ``S``."""
     W_h = np.empty_like(W)
     _replace_curvature_weights(S, far, nbr, mean, W, W_h, lam2, scale_m, laplace=1,

@@ -59,6 +59,8 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="config override (repeatable), e.g. observation.aggregate=0.5")
     args = ap.parse_args(argv)
+    if args.misfit and args.loop <= 0:
+        ap.error("--misfit times the misfit pass in the --loop: give --loop SECONDS as well")
 
     import bftaichi as bf
     from bftaichi.frame import local_frames
