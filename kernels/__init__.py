@@ -22,6 +22,7 @@ Modules, one per concern (DESIGN.md section 3):
     raycast  -- predicted depth (and its sigma) of the posterior mean through the band.
     coverage -- CoverageGrid: the seen / unknown cells of next-best-view planning.
     embed    -- SDFField: the band in Taichi fields with @ti.func sdf/grad/sigma for user kernels.
+    launch   -- a shorter launch path for kernels called with numpy arrays (install()).
 """
 
 __all__ = ["SDFField", "SparseTSDF"]

@@ -1,11 +1,13 @@
-"""Taichi's per-call Python overhead against a launch with its arguments bound once (issue 16;
-measured, not built: docs/measurements.md, "Speed measurements that found nothing to build").
+"""Taichi's per-call Python overhead against the short launch path and a launch with its
+arguments bound once (issues 16 and 18: docs/measurements.md, "Speed measurements that found
+nothing to build" and "Kernel launches without Taichi's per-call Python path").
 
 Times PCG's ``update_p`` (:class:`kernels.stencil.GatherKernels`, float64) on ``--voxels``
-rows and ``--lanes`` columns called as a ``@ti.kernel`` (Taichi checks and sets every argument
-on every call) and launched directly from its compiled data with a launch context whose
-arguments were set once (Taichi 1.7's private ``make_launch_context`` / ``launch_kernel``),
-and checks that both give the same bytes::
+rows and ``--lanes`` columns called through Taichi's own ``Kernel.__call__`` (it checks and
+sets every argument on every call), as a ``@ti.kernel`` call (since :mod:`kernels.launch`, the
+short path :func:`bftaichi.init` installs), and launched directly from its compiled data with a
+launch context whose arguments were set once (Taichi 1.7's private ``make_launch_context`` /
+``launch_kernel``), and checks that all give the same bytes::
 
     python docs/experiments/launch_overhead.py                   # the bowl's scan-step band
     python docs/experiments/launch_overhead.py --voxels 10       # the launch alone
@@ -66,21 +68,30 @@ def main() -> int:
     ker = gather_kernels(lanes, np.float64)
     R, P = rng.random((n + 1, lanes)), rng.random((n + 1, lanes))
     dinv, beta, active = rng.random(n), np.full(lanes, 0.5), np.ones(lanes, np.int32)
-    P1, P2 = P.copy(), P.copy()
+    from taichi.lang import kernel_impl
+
+    taichi_path = getattr(kernel_impl.Kernel.__call__, "__wrapped__", kernel_impl.Kernel.__call__)
+    primal = ker.update_p._primal
+    P0, P1, P2 = P.copy(), P.copy(), P.copy()
     ker.update_p(beta, active, R, dinv, P1)
     launch, _keep = bound(ker.update_p, beta, active, R, dinv, P2)
     launch()
+    taichi_path(primal, beta, active, R, dinv, P0)
     for rep in range(3):
         t0 = time.perf_counter()
         for _ in range(args.calls):
-            ker.update_p(beta, active, R, dinv, P1)
+            taichi_path(primal, beta, active, R, dinv, P0)
         t1 = time.perf_counter()
         for _ in range(args.calls):
-            launch()
+            ker.update_p(beta, active, R, dinv, P1)
         t2 = time.perf_counter()
-        print(f"{n} voxels x {lanes}: @ti.kernel call {1e6 * (t1 - t0) / args.calls:.1f} us, "
-              f"bound launch {1e6 * (t2 - t1) / args.calls:.1f} us")
-    print("same bytes:", np.array_equal(P1, P2))
+        for _ in range(args.calls):
+            launch()
+        t3 = time.perf_counter()
+        us = [1e6 * (b - a) / args.calls for a, b in ((t0, t1), (t1, t2), (t2, t3))]
+        print(f"{n} voxels x {lanes}: Taichi's path {us[0]:.1f} us, @ti.kernel call (short "
+              f"path) {us[1]:.1f} us, bound launch {us[2]:.1f} us")
+    print("same bytes:", np.array_equal(P0, P1) and np.array_equal(P1, P2))
     return 0
 
 
