@@ -3,19 +3,20 @@
 
 On every call, Taichi 1.7's ``Kernel.__call__`` finds the call's specialisation from each
 argument's features, sets each argument through several layers of Python checks, and asks the
-program for the compiled kernel, which it looks up in its cache by a hash. That is ~80 us a call
-(``update_p`` on 10 voxels: 134 us a call, of which the launch itself ~35-40 us), and a scan
+program for the compiled kernel, which it looks up in its cache by a hash: PCG's ``update_p``
+on 10 voxels takes 149-188 us a call, of which launching the compiled kernel ~30 us. A scan
 step's solve on the bowl's band makes ~1,000 calls of a few tens of microseconds of work each
 (docs/measurements.md, "Kernel launches without Taichi's per-call Python path").
 
 :func:`install` wraps ``Kernel.__call__``. A call whose arguments are positional C-contiguous
-numpy arrays (for ``ti.types.ndarray`` parameters of scalar or vector elements) and numbers
-(for scalar parameters), outside autodiff and debug mode, on the CPU, is launched directly from
-what the first call with the same argument features looked up (kept per kernel): the compiled
-kernel, and which setter each argument takes. Everything else (template parameters, fields
-passed as arguments, Taichi ndarrays, keywords, other array types or layouts, kernels that
-print, and every first call of a signature) takes Taichi's own path, which compiles, checks and
-raises as before. A re-initialised Taichi (a new program) is looked up again.
+numpy arrays (for ``ti.types.ndarray`` parameters of scalar or vector elements), numbers (for
+scalar parameters) and bools or ints (for ``ti.template()`` parameters, which select a compiled
+specialisation), outside autodiff and debug mode, on the CPU, is launched directly from what the
+first call with the same argument features looked up (kept per kernel): the compiled kernel, and
+which setter each argument takes. Everything else (other template values such as fields, Taichi
+ndarrays, keywords, other array types or layouts, kernels that print, and every first call of a
+signature) takes Taichi's own path, which compiles, checks and raises as before. A
+re-initialised Taichi (a new program) is looked up again.
 
 The kernel runs the same compiled code on the same arguments: the same bytes
 (``tests/test_launch.py`` compares the two paths; ``python tools/output_hashes.py``, 5 of 5).
@@ -27,21 +28,49 @@ from __future__ import annotations
 
 import numpy as np
 
-_ARRAY, _FLOAT, _INT, _UINT = range(4)
+_ARRAY, _FLOAT, _INT, _UINT = range(4)  # setters
+_TEMPLATE, _VECTOR, _SCALAR = range(4, 7)  # parameter kinds (_ARRAY too)
 _SKIP = "taichi"  # a signature whose calls take Taichi's own path
 
 
-def _features(args) -> tuple | None:
-    """What decides a call's specialisation and setters here, per argument: a numpy array's
-    dtype, rank and, from rank 2 on, last extent (where a vector element's length is), or the
-    type of anything else; None when an array is not C-contiguous (Taichi's path copies or
-    refuses it)."""
+def _slots(kernel) -> tuple:
+    """Per parameter of ``kernel``, what its argument's features are made of: _TEMPLATE (a
+    template: its value, when a bool or an int), _VECTOR (an ndarray of vector elements:
+    dtype, rank and last extent), _ARRAY (other ndarrays: dtype and rank) or _SCALAR (its
+    type). Read once from the annotations, kept on the kernel."""
+    slots = kernel.__dict__.get("_bftaichi_slots")
+    if slots is None:
+        from taichi.lang.kernel_impl import template
+        from taichi.types import ndarray_type, primitive_types
+
+        out = []
+        for arg in kernel.arguments:
+            ann = arg.annotation
+            if isinstance(ann, template):
+                out.append(_TEMPLATE)
+            elif isinstance(ann, ndarray_type.NdarrayType):
+                scalar = ann.dtype is None or id(ann.dtype) in primitive_types.type_ids
+                out.append(_ARRAY if scalar else _VECTOR)
+            else:
+                out.append(_SCALAR)
+        slots = kernel.__dict__["_bftaichi_slots"] = tuple(out)
+    return slots
+
+
+def _features(args, slots) -> tuple | None:
+    """What decides a call's specialisation and setters here, per argument (:func:`_slots`);
+    None when the call must take Taichi's path: an array that is not C-contiguous (Taichi's
+    path copies or refuses it), a template whose value is not a bool or an int."""
     out = []
-    for v in args:
-        if type(v) is np.ndarray:
+    for v, slot in zip(args, slots):
+        if slot == _TEMPLATE:
+            if type(v) not in (bool, int):
+                return None
+            out.append((type(v), v))
+        elif type(v) is np.ndarray:
             if not v.flags.c_contiguous:
                 return None
-            out.append((v.dtype.num, v.ndim, v.shape[-1] if v.ndim > 1 else 0))
+            out.append((v.dtype.num, v.ndim, v.shape[-1] if slot == _VECTOR and v.ndim else 0))
         else:
             out.append(type(v))
     return tuple(out)
@@ -60,25 +89,25 @@ def _plan(kernel, args):
     cfg = impl.current_cfg()
     if cfg.debug or cfg.arch.name not in ("x64", "arm64") or kernel.has_print:
         return _SKIP
-    setters = []
-    for arg, v in zip(kernel.arguments, args):
-        ann = arg.annotation
+    setters = []  # (position in args, argument index, setter, element dims)
+    for pos, (arg, v) in enumerate(zip(kernel.arguments, args)):
+        ann, j = arg.annotation, len(setters)
         if isinstance(ann, template):
-            return _SKIP
+            continue  # compiled into the kernel (a bool or an int: :func:`_features`)
         if isinstance(ann, ndarray_type.NdarrayType):
             if type(v) is not np.ndarray or getattr(ann.layout, "name", "AOS") != "AOS":
                 return _SKIP
             if ann.dtype is None or id(ann.dtype) in primitive_types.type_ids:
-                setters.append((_ARRAY, 0))
+                setters.append((pos, j, _ARRAY, 0))
             elif getattr(ann.dtype, "ndim", 0) == 1:  # vectors: their length is a feature
-                setters.append((_ARRAY, 1))
+                setters.append((pos, j, _ARRAY, 1))
             else:
                 return _SKIP
         elif id(ann) in primitive_types.real_type_ids and isinstance(
                 v, (float, int, np.floating, np.integer)):
-            setters.append((_FLOAT, 0))
+            setters.append((pos, j, _FLOAT, 0))
         elif id(ann) in primitive_types.integer_type_ids and isinstance(v, (int, np.integer)):
-            setters.append((_INT if is_signed(cook_dtype(ann)) else _UINT, 0))
+            setters.append((pos, j, _INT if is_signed(cook_dtype(ann)) else _UINT, 0))
         else:
             return _SKIP
     t_kernel = kernel.compiled_kernels[kernel.ensure_compiled(*args)]  # compiled: a lookup
@@ -91,7 +120,8 @@ def _launch(kernel, plan, args):
     """Launch ``kernel`` on ``args`` by ``plan``; its return value as Taichi's path gives it."""
     prog, compiled, t_kernel, setters = plan
     ctx = t_kernel.make_launch_context()
-    for j, ((kind, element_dim), v) in enumerate(zip(setters, args)):
+    for pos, j, kind, element_dim in setters:
+        v = args[pos]
         if kind == _ARRAY:
             shape = v.shape[:-1] if element_dim else v.shape
             ctx.set_arg_external_array_with_shape((j,), v.ctypes.data, v.nbytes, shape, 0)
@@ -131,7 +161,7 @@ def install() -> bool:
         if (kwargs or self.autodiff_mode != no_autodiff or runtime.fwd_mode_manager
                 or runtime.target_tape or len(args) != len(self.arguments)):
             return original(self, *args, **kwargs)
-        sig = _features(args)
+        sig = _features(args, _slots(self))
         if sig is None:
             return original(self, *args)
         plans = self.__dict__.setdefault("_bftaichi_plans", {})

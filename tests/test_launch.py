@@ -25,6 +25,16 @@ def _scaled_sum(a: ti.types.ndarray(dtype=ti.f64, ndim=1),
     return total
 
 
+@ti.kernel
+def _either(a: ti.types.ndarray(dtype=ti.f64, ndim=1), out: ti.types.ndarray(dtype=ti.f64, ndim=1),
+            square: ti.template(), power: ti.template()):
+    for i in range(a.shape[0]):
+        x = a[i]
+        if ti.static(square):
+            x = x * x
+        out[i] = x ** power
+
+
 def _arguments(rng, n=1000):
     return (rng.standard_normal(n), rng.standard_normal((n, 3)), np.zeros((n, 2), np.float32),
             3, 0.25)
@@ -62,6 +72,22 @@ def test_short_path_gives_taichi_paths_results():
     assert len(plans) == 1  # a's length is not a feature, the vector's is
 
 
+def test_template_values_select_their_own_compiled_kernel():
+    """A bool or int template argument is part of the signature: each value launches the
+    specialisation Taichi compiled for it."""
+    a = np.random.default_rng(5).standard_normal(100)
+    for square, power in ((True, 1), (False, 1), (True, 3), (False, 2), (True, 1)):
+        for _ in range(2):  # planned, then launched by the short path
+            out = np.zeros_like(a)
+            _either(a, out, square, power)
+        ref = np.zeros_like(a)
+        _taichi_path(_either, a, ref, square, power)
+        assert np.array_equal(out, ref)
+        assert np.allclose(out, (a * a if square else a) ** power)
+    plans = _either._primal._bftaichi_plans
+    assert len(plans) == 4 and launch._SKIP not in plans.values()
+
+
 def test_what_the_short_path_leaves_to_taichi():
     rng = np.random.default_rng(1)
     a, v, out, k, s = _arguments(rng, n=50)
@@ -89,7 +115,7 @@ def test_a_new_taichi_program_is_planned_again():
     a, v, out, k, s = _arguments(rng, n=64)
     _scaled_sum(a, v, out, k, s)
     plans = _scaled_sum._primal._bftaichi_plans
-    sig = launch._features((a, v, out, k, s))
+    sig = launch._features((a, v, out, k, s), launch._slots(_scaled_sum._primal))
     stale = (object(),) + plans[sig][1:]  # as after ti.reset(): another program
     plans[sig] = stale
     ref = np.zeros_like(out)
