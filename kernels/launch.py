@@ -70,7 +70,7 @@ def _features(args, slots) -> tuple | None:
         elif type(v) is np.ndarray:
             if not v.flags.c_contiguous:
                 return None
-            out.append((v.dtype.num, v.ndim, v.shape[-1] if slot == _VECTOR and v.ndim else 0))
+            out.append((v.dtype, v.ndim, v.shape[-1] if slot == _VECTOR and v.ndim else 0))
         else:
             out.append(type(v))
     return tuple(out)
