@@ -66,9 +66,10 @@ def init(arch: str = "cpu", *, debug: bool = False, offline_cache: bool = True,
         kwargs["cpu_max_num_threads"] = int(num_threads)
     _lean_source_positions()
     _remembered_source_lines()
-    from kernels.launch import install
+    if os.environ.get("BFTAICHI_TAICHI_LAUNCH", "") != "taichi":
+        from kernels.launch import install
 
-    install()  # kernels called with numpy arrays launch without Taichi's per-call checks
+        install()  # kernels called with numpy arrays launch without Taichi's per-call checks
     with _stdout_to_stderr():  # Taichi prints "[Taichi] Starting on arch=..." on stdout
         ti.init(**kwargs)
     _state["arch"] = arch

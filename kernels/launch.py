@@ -20,7 +20,8 @@ re-initialised Taichi (a new program) is looked up again.
 
 The kernel runs the same compiled code on the same arguments: the same bytes
 (``tests/test_launch.py`` compares the two paths; ``python tools/output_hashes.py``, 5 of 5).
-:func:`bftaichi.init` installs it; a Taichi program embedding :mod:`kernels` may call
+:func:`bftaichi.init` installs it (unless ``BFTAICHI_TAICHI_LAUNCH=taichi``, which keeps Taichi's
+own path for every call, for debugging); a Taichi program embedding :mod:`kernels` may call
 :func:`install` itself. A Taichi whose ``Kernel`` lacks the 1.7 members used here is left alone.
 """
 

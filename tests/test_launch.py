@@ -2,6 +2,11 @@
 results as Taichi's own path, and everything the short path does not handle still goes through
 Taichi's, checks and errors included."""
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import taichi as ti
@@ -161,3 +166,19 @@ def test_solvers_give_the_same_bits_with_and_without_the_short_path(monkeypatch)
     assert np.array_equal(fast[0], slow[0])
     assert fast[3]["iterations"] == slow[3]["iterations"]
     assert np.array_equal(fast[2], slow[2])
+
+
+@pytest.mark.parametrize("setting, expected", [(None, "True"), ("taichi", "False")])
+def test_the_short_path_can_be_turned_off(setting, expected):
+    """BFTAICHI_TAICHI_LAUNCH=taichi keeps Taichi's own launch path (for debugging a kernel)."""
+    env = {k: v for k, v in os.environ.items() if k != "BFTAICHI_TAICHI_LAUNCH"}
+    if setting is not None:
+        env["BFTAICHI_TAICHI_LAUNCH"] = setting
+    code = ("import bftaichi\n"
+            "from taichi.lang import kernel_impl\n"
+            "bftaichi.init()\n"
+            "print(getattr(kernel_impl.Kernel.__call__, '_bftaichi_short', False))\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1],
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == expected
