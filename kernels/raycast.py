@@ -36,7 +36,12 @@ has no band corner), and the march runs from the first to the last lattice sampl
 holding its base corner). If that block holds no band voxel, no sample based in it can be
 valid, so the march jumps to the first lattice sample at or beyond the depth where ``g``
 leaves the block (:func:`_block_exit`; snapping to the lattice is the "epsilon" that puts the
-next sample outside the block). *Block cache*: each ray keeps the block of its last sample and
+next sample outside the block). (c) *Blocks without a crossing*: where no cell based in a
+band block has an observed corner with ``mean <= 0`` (:func:`_crossing_blocks`), each of its
+valid samples has ``mu > 0`` (a convex combination of positive means) and no sample in it can
+end a pair or take an entry point; the march visits only its last two lattice samples (the
+last sets what the next block's first sample pairs with; two, so that rounding at the exit
+face cannot leave the true last one out). *Block cache*: each ray keeps the block of its last sample and
 the table rows of the 8 blocks ``b + (0|1, 0|1, 0|1)`` a cell based in it can reach; b's own
 row is looked up (one binary search) when the ray enters b, a neighbour's only when a cell on
 b's last voxel layer first needs it. A ray thus searches about once per block it passes.
@@ -60,7 +65,7 @@ import taichi as ti
 
 from .funcs import (block_row, cell_corners, corner_offset, floor_i32, reaches_block,
                     trilinear)
-from .layout import BLOCK, BLOCK_VOXELS, band_box
+from .layout import BLOCK, BLOCK_VOXELS, band_box, decode_keys
 from .rays import (N_RAY_PARAMS, NO_FACE, P_M, P_O, check_camera, check_positive, check_stride,
                    clip_to_box, ray_grid, ray_origin, ray_params)
 
@@ -129,7 +134,7 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
              var: ti.types.ndarray(dtype=ti.f32, ndim=1),
              sigma: ti.types.ndarray(dtype=ti.f32, ndim=2), slope_min: ti.f64,
              with_var: ti.template(), mask: ti.types.ndarray(dtype=ti.u8, ndim=2),
-             masked: ti.i32):
+             masked: ti.i32, crossing: ti.types.ndarray(dtype=ti.u8, ndim=1)):
     """Predicted depth (camera z, metres) of every ``stride``-th pixel into ``depth`` (H, W),
     0 where the ray finds no crossing (module docstring, steps 1-3); with ``with_var``, its
     standard deviation into ``sigma`` (step 4); with ``masked``, only the pixels where
@@ -168,6 +173,13 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                 cached = b
                 rows = ti.Vector([_UNKNOWN] * 8)
                 rows[0] = block_row(block_keys, b[0], b[1], b[2])
+                if rows[0] >= 0 and crossing[rows[0]] == 0:
+                    # no cell based here reaches an observed mean <= 0 (step (c) of the
+                    # module docstring): only the block's second-to-last sample on is visited
+                    k_exit = ti.ceil(ti.min((_block_exit(o, m, b) - z_min) / dz, n))
+                    if ti.cast(k_exit, ti.i64) - 2 > k:
+                        k = ti.cast(k_exit, ti.i64) - 2
+                        continue
             if rows[0] < 0:  # empty block: jump to the first sample beyond it
                 k_exit = ti.ceil(ti.min((_block_exit(o, m, b) - z_min) / dz, n))
                 k = ti.max(k + 1, ti.cast(k_exit, ti.i64))
@@ -211,6 +223,32 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
         depth[v, u] = ti.cast(hit, ti.f32)
         if ti.static(with_var):
             sigma[v, u] = ti.cast(hit_sigma, ti.f32)
+
+
+@ti.kernel
+def _crossing_blocks(block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                     block_table: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                     blocks: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                     mean: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                     observed: ti.types.ndarray(dtype=ti.u8, ndim=1),
+                     crossing: ti.types.ndarray(dtype=ti.u8, ndim=1)):
+    """``crossing[r] = 1`` for every block (table row r) where a cell based in it has a corner
+    that is an observed band voxel with ``mean <= 0``: its own such voxels, and those on the
+    first voxel layer of the blocks after it (``blocks``: the rows' block coordinates). One
+    thread per table entry, stores of the value 1 only: deterministic."""
+    for r, t in ti.ndrange(block_table.shape[0], BLOCK_VOXELS):
+        i = block_table[r, t]
+        if i >= 0:
+            if observed[i] != 0 and mean[i] <= 0:
+                crossing[r] = ti.u8(1)
+                loc = ti.Vector([t >> 6, (t >> 3) & 7, t & 7])
+                for s in range(1, 8):  # the blocks whose cells reach this one's first layer
+                    e = corner_offset(s)
+                    if ((e == 0) | (loc == 0)).all():
+                        row = block_row(block_keys, blocks[r, 0] - e[0], blocks[r, 1] - e[1],
+                                        blocks[r, 2] - e[2])
+                        if row >= 0:
+                            crossing[row] = ti.u8(1)
 
 
 def _grid_corners_reach(prm: np.ndarray, width: int, height: int, z_max: float) -> float:
@@ -316,8 +354,12 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
                              f"{mask.shape} {mask.dtype}")
     mask8 = np.ascontiguousarray(np.zeros((1, 1), np.uint8) if mask is None else mask, np.uint8)
     if len(keys):
-        _raycast(prm, np.ascontiguousarray(keys), np.ascontiguousarray(table, np.int32),
-                 np.ascontiguousarray(mean, np.float32),
-                 np.ascontiguousarray(observed, np.uint8), stride, depth, var32, sigma,
-                 float(slope_min), with_var, mask8, int(mask is not None))
+        keys, table = np.ascontiguousarray(keys), np.ascontiguousarray(table, np.int32)
+        mean32 = np.ascontiguousarray(mean, np.float32)
+        observed8 = np.ascontiguousarray(observed, np.uint8)
+        crossing = np.zeros(len(keys), np.uint8)
+        _crossing_blocks(keys, table, decode_keys(keys).astype(np.int32), mean32, observed8,
+                         crossing)
+        _raycast(prm, keys, table, mean32, observed8, stride, depth, var32, sigma,
+                 float(slope_min), with_var, mask8, int(mask is not None), crossing)
     return (depth, sigma) if with_var else depth

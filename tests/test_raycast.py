@@ -294,6 +294,56 @@ def test_surface_just_behind_the_face_of_a_band_block(skip):
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
 
 
+def test_blocks_without_a_crossing_are_those_no_cell_of_which_reaches_a_negative_mean():
+    """kernels.raycast._crossing_blocks against its definition: block b may hold a crossing
+    when some observed band voxel in [8 b, 8 b + 8]^3 (what the cells based in b reach) has
+    mean <= 0; the others are the ones the march crosses in two samples."""
+    from kernels.layout import decode_keys
+    from kernels.raycast import _crossing_blocks
+
+    rng = np.random.default_rng(7)
+    r = np.arange(-12, 20)
+    ijk = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    ijk = ijk[rng.random(len(ijk)) < 0.6].astype(np.int32)
+    mean = np.where(rng.random(len(ijk)) < 0.01, -1.0, 1.0).astype(np.float32)
+    observed = (rng.random(len(ijk)) < 0.9).astype(np.uint8)
+    keys, table = build_block_table(ijk)
+    blocks = decode_keys(keys)
+    crossing = np.zeros(len(keys), np.uint8)
+    _crossing_blocks(keys, table, blocks.astype(np.int32), mean, observed, crossing)
+    negative = ijk[(observed != 0) & (mean <= 0)]
+    expected = np.array([((negative >= 8 * b) & (negative <= 8 * b + 8)).all(axis=1).any()
+                         for b in blocks])
+    assert 0 < expected.sum() < len(blocks)
+    np.testing.assert_array_equal(crossing.astype(bool), expected)
+
+
+@pytest.mark.parametrize("g_surface", [7.8, 8.2, 15.9, 20.3])
+def test_surface_beside_a_block_the_march_crosses_in_two_samples(g_surface):
+    """A slab three blocks deep (voxels k = 0..23) seen obliquely, its surface at grid z
+    ``g_surface``: in the last layer of the block before the face between blocks (7.8: only
+    the next block's first layer is negative), just past it (8.2, 15.9 the same one block
+    on), or inside a block (20.3). The blocks in front of the surface have no crossing and are
+    crossed in two samples; every depth is the plain march's."""
+    vs = 0.02
+    r = np.arange(-16, 16)
+    ijk = np.stack(np.meshgrid(r, r, np.arange(0, 24), indexing="ij"), -1).reshape(-1, 3)
+    ijk = ijk.astype(np.int32)
+    z_surface = (g_surface + 0.5) * vs
+    band = SimpleNamespace(voxel=vs, ijk=ijk,
+                           mean=(z_surface - (ijk[:, 2] + 0.5) * vs).astype(np.float32))
+    keys, table = build_block_table(ijk)
+    observed = np.ones(len(ijk), np.uint8)
+    w, h = 40, 30
+    K = intrinsics(w, h, 40.0)
+    T = look_at((0.21, -0.17, -0.45), (0.0, 0.0, 0.3), up=(0.0, -1.0, 0.0))
+    got = raycast_depth(keys, table, band.mean, observed, vs, K, T, w, h, 0.1, 1.5)
+    ref = reference_march(band, observed, K, T, w, h, 0.1, 1.5, 0.5)
+    assert (ref > 0).mean() > 0.5
+    np.testing.assert_array_equal(got > 0, ref > 0)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+
+
 def test_deterministic(sphere):
     a = sphere.cast(K_SPHERE, T_SPHERE, W, H, stride=2)
     b = sphere.cast(K_SPHERE, T_SPHERE, W, H, stride=2)
