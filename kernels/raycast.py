@@ -41,10 +41,11 @@ band block has an observed corner with ``mean <= 0`` (:func:`_crossing_blocks`),
 valid samples has ``mu > 0`` (a convex combination of positive means) and no sample in it can
 end a pair or take an entry point; the march visits only its last two lattice samples (the
 last sets what the next block's first sample pairs with; two, so that rounding at the exit
-face cannot leave the true last one out). *Block cache*: each ray keeps the block of its last sample and
-the table rows of the 8 blocks ``b + (0|1, 0|1, 0|1)`` a cell based in it can reach; b's own
-row is looked up (one binary search) when the ray enters b, a neighbour's only when a cell on
-b's last voxel layer first needs it. A ray thus searches about once per block it passes.
+face cannot leave the true last one out). *Block cache*: each ray keeps the block of its last
+sample and the table rows of the 8 blocks ``b + (0|1, 0|1, 0|1)`` a cell based in it can
+reach; b's own row is looked up (one binary search) when the ray enters b, a neighbour's only
+when a cell on b's last voxel layer first needs it. A ray thus searches about once per block
+it passes.
 
 Cost (2-core EPYC, both threads): a 160x120 cast of a 68k-voxel sphere shell (1 cm voxels,
 r = 0.3 m, 3 voxels either side; camera 1 m away, depths 0.1-3 m, half-voxel steps) takes

@@ -42,7 +42,8 @@ def main() -> int:
     bf.init("cpu")
     frames = bf.open_dataset(args.data, frames=slice(0, 500, 40))
     digest, ms = hashlib.sha256(), {}
-    for name, path, size in (("bowl", args.bowl, (160, 120)), ("kitchen", args.kitchen, (640, 480))):
+    runs = (("bowl", args.bowl, (160, 120)), ("kitchen", args.kitchen, (640, 480)))
+    for name, path, size in runs:
         post = bf.Posterior.load(path)
         if name == "bowl":
             poses, K = candidates_around(post, 48), BOWL_K
