@@ -19,8 +19,12 @@ import hashlib
 import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+ROOT = Path(os.getcwd())  # the checkout measured: the current directory's (see above)
+sys.path.insert(0, str(ROOT))
 
 BOWL_K = np.array([[131.25, 0.0, 79.5], [0.0, 131.25, 59.5], [0.0, 0.0, 1.0]])  # scenes/bowl.toml
 
@@ -32,8 +36,6 @@ def main() -> int:
     ap.add_argument("kitchen", help="band.npz of a 2 cm redkitchen fuse")
     ap.add_argument("data", help="the redkitchen frames (for their poses and intrinsics)")
     args = ap.parse_args()
-    sys.path.insert(0, os.path.join(os.getcwd(), "tools"))
-    import checkout  # noqa: F401  (the current directory's bftaichi first on sys.path)
     import bftaichi as bf
     from bftaichi.geometry import pose_in_local
     from bftaichi.planning.nbv import candidates_around
@@ -64,7 +66,7 @@ def main() -> int:
                     digest.update(depth.tobytes())
                     digest.update(sigma.tobytes())
         ms[name] = 1e3 * (time.perf_counter() - t0) / (3 * len(poses))
-    print(f"{os.getcwd()}: hash {digest.hexdigest()[:16]}, bowl {ms['bowl']:.2f} ms, "
+    print(f"{ROOT}: hash {digest.hexdigest()[:16]}, bowl {ms['bowl']:.2f} ms, "
           f"kitchen {ms['kitchen']:.2f} ms a cast")
     return 0
 
