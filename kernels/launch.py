@@ -30,15 +30,16 @@ from __future__ import annotations
 import numpy as np
 
 _ARRAY, _FLOAT, _INT, _UINT = range(4)  # setters
-_TEMPLATE, _VECTOR, _SCALAR = range(4, 7)  # parameter kinds (_ARRAY too)
+_TEMPLATE, _VECTOR, _SCALAR, _OTHER = range(4, 8)  # parameter kinds (_ARRAY too)
 _SKIP = "taichi"  # a signature whose calls take Taichi's own path
 
 
 def _slots(kernel) -> tuple:
     """Per parameter of ``kernel``, what its argument's features are made of: _TEMPLATE (a
     template: its value, when a bool or an int), _VECTOR (an ndarray of vector elements:
-    dtype, rank and last extent), _ARRAY (other ndarrays: dtype and rank) or _SCALAR (its
-    type). Read once from the annotations, kept on the kernel."""
+    dtype, rank and last extent), _ARRAY (an ndarray of scalars: dtype and rank), _OTHER (an
+    ndarray of matrices: never planned) or _SCALAR (its type). Read once from the
+    annotations, kept on the kernel."""
     slots = kernel.__dict__.get("_bftaichi_slots")
     if slots is None:
         from taichi.lang.kernel_impl import template
@@ -49,11 +50,14 @@ def _slots(kernel) -> tuple:
             ann = arg.annotation
             if isinstance(ann, template):
                 out.append(_TEMPLATE)
-            elif isinstance(ann, ndarray_type.NdarrayType):
-                scalar = ann.dtype is None or id(ann.dtype) in primitive_types.type_ids
-                out.append(_ARRAY if scalar else _VECTOR)
-            else:
+            elif not isinstance(ann, ndarray_type.NdarrayType):
                 out.append(_SCALAR)
+            elif ann.dtype is None or id(ann.dtype) in primitive_types.type_ids:
+                out.append(_ARRAY)
+            elif getattr(ann.dtype, "ndim", 0) == 1:
+                out.append(_VECTOR)
+            else:  # matrix elements: Taichi's path
+                out.append(_OTHER)
         slots = kernel.__dict__["_bftaichi_slots"] = tuple(out)
     return slots
 
@@ -82,32 +86,27 @@ def _plan(kernel, args):
     arguments with the features of ``args`` (a call that has just run through Taichi's path),
     or _SKIP."""
     from taichi.lang import impl
-    from taichi.lang.kernel_impl import template
     from taichi.lang.util import cook_dtype
-    from taichi.types import ndarray_type, primitive_types
+    from taichi.types import primitive_types
     from taichi.types.utils import is_signed
 
     cfg = impl.current_cfg()
     if cfg.debug or cfg.arch.name not in ("x64", "arm64") or kernel.has_print:
         return _SKIP
     setters = []  # (position in args, argument index, setter, element dims)
-    for pos, (arg, v) in enumerate(zip(kernel.arguments, args)):
+    for pos, (arg, slot, v) in enumerate(zip(kernel.arguments, _slots(kernel), args)):
         ann, j = arg.annotation, len(setters)
-        if isinstance(ann, template):
+        if slot == _TEMPLATE:
             continue  # compiled into the kernel (a bool or an int: :func:`_features`)
-        if isinstance(ann, ndarray_type.NdarrayType):
+        if slot in (_ARRAY, _VECTOR):
             if type(v) is not np.ndarray or getattr(ann.layout, "name", "AOS") != "AOS":
                 return _SKIP
-            if ann.dtype is None or id(ann.dtype) in primitive_types.type_ids:
-                setters.append((pos, j, _ARRAY, 0))
-            elif getattr(ann.dtype, "ndim", 0) == 1:  # vectors: their length is a feature
-                setters.append((pos, j, _ARRAY, 1))
-            else:
-                return _SKIP
-        elif id(ann) in primitive_types.real_type_ids and isinstance(
+            setters.append((pos, j, _ARRAY, int(slot == _VECTOR)))
+        elif slot == _SCALAR and id(ann) in primitive_types.real_type_ids and isinstance(
                 v, (float, int, np.floating, np.integer)):
             setters.append((pos, j, _FLOAT, 0))
-        elif id(ann) in primitive_types.integer_type_ids and isinstance(v, (int, np.integer)):
+        elif slot == _SCALAR and id(ann) in primitive_types.integer_type_ids and isinstance(
+                v, (int, np.integer)):
             setters.append((pos, j, _INT if is_signed(cook_dtype(ann)) else _UINT, 0))
         else:
             return _SKIP

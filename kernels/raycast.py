@@ -124,6 +124,13 @@ def _block_exit(o, m, b) -> ti.f64:
     return z
 
 
+@ti.func
+def _first_sample_beyond(o, m, b, z_min: ti.f64, dz: ti.f64, n: ti.f64) -> ti.i64:
+    """Index of the first lattice sample ``z_min + k dz`` at or beyond the depth where the ray
+    leaves block b (at most ``n``, the sample count)."""
+    return ti.cast(ti.ceil(ti.min((_block_exit(o, m, b) - z_min) / dz, n)), ti.i64)
+
+
 @ti.kernel
 def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
              block_keys: ti.types.ndarray(dtype=ti.i64, ndim=1),
@@ -177,13 +184,12 @@ def _raycast(prm: ti.types.ndarray(dtype=ti.f64, ndim=1),
                 if rows[0] >= 0 and crossing[rows[0]] == 0:
                     # no cell based here reaches an observed mean <= 0 (step (c) of the
                     # module docstring): only the block's second-to-last sample on is visited
-                    k_exit = ti.ceil(ti.min((_block_exit(o, m, b) - z_min) / dz, n))
-                    if ti.cast(k_exit, ti.i64) - 2 > k:
-                        k = ti.cast(k_exit, ti.i64) - 2
+                    k_last = _first_sample_beyond(o, m, b, z_min, dz, n) - 2
+                    if k_last > k:
+                        k = k_last
                         continue
             if rows[0] < 0:  # empty block: jump to the first sample beyond it
-                k_exit = ti.ceil(ti.min((_block_exit(o, m, b) - z_min) / dz, n))
-                k = ti.max(k + 1, ti.cast(k_exit, ti.i64))
+                k = ti.max(k + 1, _first_sample_beyond(o, m, b, z_min, dz, n))
                 prev_valid = 0
             else:
                 # look a block the cell reaches up the first time (a run-time loop: one

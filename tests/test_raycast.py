@@ -267,6 +267,22 @@ def test_matches_a_plain_numpy_march_on_a_band_with_gaps():
     assert (strided[~mask] == 0).all()
 
 
+def slab_depths(ijk, vs, g_surface, focal, eye, target, z_max):
+    """``(kernel, reference)`` depths (30, 40) of the band ``ijk`` whose mean is the distance
+    to the plane at grid z ``g_surface`` (every voxel observed), seen from ``eye`` looking at
+    ``target`` (depths 0.1 .. ``z_max``, half-voxel steps)."""
+    z_surface = (g_surface + 0.5) * vs
+    band = SimpleNamespace(voxel=vs, ijk=ijk,
+                           mean=(z_surface - (ijk[:, 2] + 0.5) * vs).astype(np.float32))
+    keys, table = build_block_table(ijk)
+    observed = np.ones(len(ijk), np.uint8)
+    w, h = 40, 30
+    K = intrinsics(w, h, focal)
+    T = look_at(eye, target, up=(0.0, -1.0, 0.0))
+    got = raycast_depth(keys, table, band.mean, observed, vs, K, T, w, h, 0.1, z_max)
+    return got, reference_march(band, observed, K, T, w, h, 0.1, z_max, 0.5)
+
+
 @pytest.mark.parametrize("skip", ["empty blocks", "band box"])
 def test_surface_just_behind_the_face_of_a_band_block(skip):
     """A block-aligned slab (voxels k = 8..23) whose surface lies 0.2 voxel into its first
@@ -279,16 +295,8 @@ def test_surface_just_behind_the_face_of_a_band_block(skip):
     extra = np.stack(np.meshgrid(r[:8] + 64, r[:8], np.arange(-16, -8), indexing="ij"),
                      -1).reshape(-1, 3)
     ijk = np.concatenate([slab, extra] if skip == "empty blocks" else [slab]).astype(np.int32)
-    z_surface = (8.2 + 0.5) * vs  # grid coordinate g_z = z / vs - 0.5 = 8.2
-    band = SimpleNamespace(voxel=vs, ijk=ijk,
-                           mean=(z_surface - (ijk[:, 2] + 0.5) * vs).astype(np.float32))
-    keys, table = build_block_table(ijk)
-    observed = np.ones(len(ijk), np.uint8)
-    w, h = 40, 30
-    K = intrinsics(w, h, 60.0)
-    T = look_at((0.013, -0.021, -0.5), (0.0, 0.0, 1.0), up=(0.0, -1.0, 0.0))
-    got = raycast_depth(keys, table, band.mean, observed, vs, K, T, w, h, 0.1, 1.0)
-    ref = reference_march(band, observed, K, T, w, h, 0.1, 1.0, 0.5)
+    # grid coordinate g_z = z / vs - 0.5 = 8.2
+    got, ref = slab_depths(ijk, vs, 8.2, 60.0, (0.013, -0.021, -0.5), (0.0, 0.0, 1.0), 1.0)
     assert (ref > 0).mean() > 0.9  # the entry point finds the surface 0.2 voxel inside
     np.testing.assert_array_equal(got > 0, ref > 0)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
@@ -325,20 +333,10 @@ def test_surface_beside_a_block_the_march_crosses_in_two_samples(g_surface):
     the next block's first layer is negative), just past it (8.2, 15.9 the same one block
     on), or inside a block (20.3). The blocks in front of the surface have no crossing and are
     crossed in two samples; every depth is the plain march's."""
-    vs = 0.02
     r = np.arange(-16, 16)
     ijk = np.stack(np.meshgrid(r, r, np.arange(0, 24), indexing="ij"), -1).reshape(-1, 3)
-    ijk = ijk.astype(np.int32)
-    z_surface = (g_surface + 0.5) * vs
-    band = SimpleNamespace(voxel=vs, ijk=ijk,
-                           mean=(z_surface - (ijk[:, 2] + 0.5) * vs).astype(np.float32))
-    keys, table = build_block_table(ijk)
-    observed = np.ones(len(ijk), np.uint8)
-    w, h = 40, 30
-    K = intrinsics(w, h, 40.0)
-    T = look_at((0.21, -0.17, -0.45), (0.0, 0.0, 0.3), up=(0.0, -1.0, 0.0))
-    got = raycast_depth(keys, table, band.mean, observed, vs, K, T, w, h, 0.1, 1.5)
-    ref = reference_march(band, observed, K, T, w, h, 0.1, 1.5, 0.5)
+    got, ref = slab_depths(ijk.astype(np.int32), 0.02, g_surface, 40.0, (0.21, -0.17, -0.45),
+                           (0.0, 0.0, 0.3), 1.5)
     assert (ref > 0).mean() > 0.5
     np.testing.assert_array_equal(got > 0, ref > 0)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
