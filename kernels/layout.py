@@ -103,3 +103,26 @@ def band_box(block_keys: np.ndarray) -> np.ndarray:
     blocks = decode_keys(block_keys)
     return np.concatenate([blocks.min(axis=0) * BLOCK, (blocks.max(axis=0) + 1) * BLOCK]).astype(
         np.float64)
+
+
+#: Largest bounding box (in blocks) :func:`distinct_block_keys` marks in a bitmap (16 MB).
+DISTINCT_BITMAP = 1 << 24
+
+
+def distinct_block_keys(blocks: np.ndarray) -> np.ndarray:
+    """``np.unique(block_key_np(blocks))``: the distinct keys of integer block coordinates (M,
+    3) (float arrays of whole numbers too), ascending. The blocks are marked in a bitmap over
+    their bounding box, whose flat order is the keys' (lexicographic), when it holds at most
+    :data:`DISTINCT_BITMAP` blocks, which spares the sort of M keys; sorted otherwise."""
+    b = np.asarray(blocks).reshape(-1, 3).astype(np.int64)
+    if not len(b):
+        return np.zeros(0, np.int64)
+    lo, hi = column_min(b), column_max(b)
+    dims = [int(n) for n in hi - lo + 1]
+    if dims[0] * dims[1] * dims[2] > DISTINCT_BITMAP:
+        return np.unique(block_key_np(b))
+    seen = np.zeros(dims[0] * dims[1] * dims[2], bool)
+    seen[((b[:, 0] - lo[0]) * dims[1] + (b[:, 1] - lo[1])) * dims[2] + (b[:, 2] - lo[2])] = True
+    i, rest = np.divmod(np.flatnonzero(seen), dims[1] * dims[2])
+    j, k = np.divmod(rest, dims[2])
+    return block_key_np(np.stack([i + lo[0], j + lo[1], k + lo[2]], axis=1))

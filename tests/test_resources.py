@@ -211,3 +211,15 @@ def test_the_restated_tsdf_layout_matches_kernels_tsdf():
 
     assert (r.BLOCK, r.BLOCK_VOXELS, r.FIRST_POOL_BLOCKS) == (t.BLOCK, t.BLOCK_VOXELS,
                                                                t.FIRST_POOL_BLOCKS)
+
+
+@pytest.mark.parametrize("span", [3, 40, 1 << 12])  # the last: more than a bitmap holds
+def test_distinct_block_keys_are_the_sorted_unique_keys(span):
+    # the scene sample counts the distinct blocks its rays meet by a bitmap instead of a sort:
+    # the same keys, ascending, for integer or whole-number float coordinates of any sign
+    from kernels.layout import block_key_np, distinct_block_keys
+
+    rng = np.random.default_rng(span)
+    blocks = rng.integers(-span, span, size=(20_000, 3)) + np.array([-700, 5, 300])
+    for b in (blocks, blocks.astype(np.float64), blocks[:1], blocks[:0]):
+        np.testing.assert_array_equal(distinct_block_keys(b), np.unique(block_key_np(b)))

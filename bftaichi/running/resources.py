@@ -20,9 +20,9 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from kernels.layout import KEY_BIAS, block_key_np as _keys, decode_keys
+from kernels.layout import KEY_BIAS, decode_keys, distinct_block_keys
 from kernels.fixedpoint import accumulator_parts
-from kernels.layout import block_key_steps as _block_steps
+from kernels.layout import OFFSETS
 
 from ..errors import BftaichiError
 from ..geometry import local_origin, points_in_local
@@ -239,9 +239,9 @@ class SceneSample:
                                      for p, *_ in self.views]) if self.views
                      else np.zeros((0, 3), np.int64))
             if len(cells) and np.abs(cells).max() < KEY_BIAS:
-                # unique packed keys (ascending keys = lexicographic cells): the same sorted
-                # cells as np.unique(axis=0), ~10x faster than its row sort
-                cells = decode_keys(np.unique(_keys(cells)))
+                # distinct packed keys (ascending keys = lexicographic cells): the same sorted
+                # cells as np.unique(axis=0), without its row sort
+                cells = decode_keys(distinct_block_keys(cells))
             else:
                 cells = np.unique(cells, axis=0)
             self._cells[voxel_size_m] = cells
@@ -268,14 +268,14 @@ class SceneSample:
             steps = int(math.ceil(2 * trunc_b_m * float(np.linalg.norm(rays, axis=1).max())
                                   / (0.5 * block_m))) + 1
             z0, z1 = np.maximum(z - trunc_b_m, 1e-3), z + trunc_b_m
-            keys = [_keys(np.floor((centre + rays * (z0 + (z1 - z0) * (s / steps))[:, None])
-                                   / block_m)) for s in range(steps + 1)]
-            block_keys.append(np.unique(np.concatenate(keys)))
+            block_keys.append(distinct_block_keys(np.concatenate(
+                [np.floor((centre + rays * (z0 + (z1 - z0) * (s / steps))[:, None]) / block_m)
+                 for s in range(steps + 1)])))
         if not block_keys:
             return {"blocks": 0, "candidate_blocks": 0, "surface_cells": 0, "cell_m": cell_m,
                     "area_m2": 0.0}
         blocks = np.unique(np.concatenate(block_keys))
-        candidates = np.unique((blocks[:, None] + _block_steps()[None, :]).ravel())
+        candidates = distinct_block_keys(decode_keys(blocks)[:, None] + OFFSETS[None])
         cells = len(cell_ijk)
         return {"blocks": len(blocks), "candidate_blocks": len(candidates),
                 "surface_cells": cells, "cell_m": cell_m, "area_m2": cells * cell_m ** 2 / 1.5}
