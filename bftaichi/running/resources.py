@@ -20,9 +20,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from kernels.layout import KEY_BIAS, decode_keys, distinct_block_keys
 from kernels.fixedpoint import accumulator_parts
-from kernels.layout import OFFSETS
+from kernels.layout import KEY_BIAS, OFFSETS, decode_keys, distinct_block_keys
 
 from ..errors import BftaichiError
 from ..geometry import local_origin, points_in_local
