@@ -109,9 +109,12 @@ def test_a_real_ctrl_c_leaves_no_half_written_outputs(tmp_path):
     import time
 
     out = tmp_path / "out"
+    # SIGINT's default action in the child even when this test runs from a shell's background
+    # job, which starts with SIGINT ignored (the child would inherit that and finish the run)
     proc = subprocess.Popen([sys.executable, "-m", "bftaichi.cli", "run", "-q", "--out",
                              str(out), "--set", "run.plots=false"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 60
     while not (out / ".bftaichi-partial").exists() and time.monotonic() < deadline:
         time.sleep(0.05)  # wait until the run has started writing
