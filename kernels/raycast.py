@@ -272,7 +272,8 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
                   observed: np.ndarray, voxel_size: float, K: np.ndarray, T_W_C: np.ndarray,
                   width: int, height: int, depth_min_m: float, depth_max_m: float,
                   step_voxels: float = 0.5, stride: int = 1, var: np.ndarray | None = None,
-                  slope_min: float = 0.3, mask: np.ndarray | None = None):
+                  slope_min: float = 0.3, mask: np.ndarray | None = None,
+                  crossing: np.ndarray | None = None):
     """Predicted depth image of the surface ``mean = 0`` seen by a camera (module docstring).
 
     Args:
@@ -297,6 +298,9 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
         slope_min: floor of that slope (no unit).
         mask: optional (height, width) bool: cast only the pixels where it is True (the
             others are 0, as if no surface were found): e.g. the pixels a caller will keep.
+        crossing: optional (B,) uint8, :func:`crossing_blocks` of these block_keys,
+            block_table, mean and observed (computed here when None): a caller casting many
+            views of one band computes it once.
 
     Returns:
         (height, width) float32 camera depth (z_C) of the first front-facing zero crossing,
@@ -364,9 +368,28 @@ def raycast_depth(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndar
         keys, table = np.ascontiguousarray(keys), np.ascontiguousarray(table, np.int32)
         mean32 = np.ascontiguousarray(mean, np.float32)
         observed8 = np.ascontiguousarray(observed, np.uint8)
-        crossing = np.zeros(len(keys), np.uint8)
-        _crossing_blocks(keys, table, decode_keys(keys).astype(np.int32), mean32, observed8,
-                         crossing)
+        if crossing is None:
+            crossing = crossing_blocks(keys, table, mean32, observed8)
+        crossing = np.asarray(crossing)
+        if crossing.shape != keys.shape or crossing.dtype != np.uint8:
+            raise ValueError(f"crossing must be a ({len(keys)},) uint8 array "
+                             f"(crossing_blocks), got {crossing.shape} {crossing.dtype}")
         _raycast(prm, keys, table, mean32, observed8, stride, depth, var32, sigma,
-                 float(slope_min), with_var, mask8, int(mask is not None), crossing)
+                 float(slope_min), with_var, mask8, int(mask is not None),
+                 np.ascontiguousarray(crossing))
     return (depth, sigma) if with_var else depth
+
+
+def crossing_blocks(block_keys: np.ndarray, block_table: np.ndarray, mean: np.ndarray,
+                    observed: np.ndarray) -> np.ndarray:
+    """(B,) uint8: 1 for every block of the band lookup (:func:`raycast_depth`'s arguments)
+    where a cell based in it has an observed corner with ``mean <= 0``, the blocks whose
+    samples the march may not skip (module docstring, step (c))."""
+    keys = np.ascontiguousarray(block_keys, np.int64)
+    crossing = np.zeros(len(keys), np.uint8)
+    if len(keys):
+        _crossing_blocks(keys, np.ascontiguousarray(block_table, np.int32),
+                         decode_keys(keys).astype(np.int32),
+                         np.ascontiguousarray(mean, np.float32),
+                         np.ascontiguousarray(observed, np.uint8), crossing)
+    return crossing

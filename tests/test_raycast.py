@@ -303,11 +303,11 @@ def test_surface_just_behind_the_face_of_a_band_block(skip):
 
 
 def test_blocks_without_a_crossing_are_those_no_cell_of_which_reaches_a_negative_mean():
-    """kernels.raycast._crossing_blocks against its definition: block b may hold a crossing
+    """kernels.raycast.crossing_blocks against its definition: block b may hold a crossing
     when some observed band voxel in [8 b, 8 b + 8]^3 (what the cells based in b reach) has
     mean <= 0; the others are the ones the march crosses in two samples."""
     from kernels.layout import decode_keys
-    from kernels.raycast import _crossing_blocks
+    from kernels.raycast import crossing_blocks
 
     rng = np.random.default_rng(7)
     r = np.arange(-12, 20)
@@ -317,8 +317,7 @@ def test_blocks_without_a_crossing_are_those_no_cell_of_which_reaches_a_negative
     observed = (rng.random(len(ijk)) < 0.9).astype(np.uint8)
     keys, table = build_block_table(ijk)
     blocks = decode_keys(keys)
-    crossing = np.zeros(len(keys), np.uint8)
-    _crossing_blocks(keys, table, blocks.astype(np.int32), mean, observed, crossing)
+    crossing = crossing_blocks(keys, table, mean, observed)
     negative = ijk[(observed != 0) & (mean <= 0)]
     expected = np.array([((negative >= 8 * b) & (negative <= 8 * b + 8)).all(axis=1).any()
                          for b in blocks])
@@ -391,6 +390,7 @@ def test_input_validation(sphere):
         (ValueError, "depth_max_m", dict(depth_max_m=1e6)),  # beyond the band index range
         (ValueError, "step_voxels", dict(step_voxels=-1.0)),
         (ValueError, "stride", dict(stride=0)),
+        (ValueError, "crossing", dict(crossing=np.zeros(1, np.uint8))),
     ]
     for error, name, change in cases:
         with pytest.raises(error, match=name):

@@ -275,6 +275,7 @@ class Planner:
         self.stride = cfg.nbv.stride or o.stride
         self.depth_range = depth_range or (cfg.scene.depth_min_m, cfg.scene.depth_max_m)
         self.observed = post.band.observed.astype(np.uint8)
+        self._crossing = None  # kernels.raycast.crossing_blocks of the band, on first use
         # the noise fitted to the fused frames (ObservationConfig.fit_noise) holds for new ones
         self.sigma_model_m = float(np.hypot(o.sigma_model_m, post.sigma_extra_m))
         self.observer = make_observer(post.band, o, vs, tau, post.sigma_extra_m,
@@ -297,14 +298,17 @@ class Planner:
     def predict_depth(self, T_W_C, stride: int | None = None) -> np.ndarray:
         """(H, W) float32 predicted depth of a view (0 where no surface is predicted), at every
         ``stride``-th pixel (default: the planner's)."""
-        from kernels.raycast import raycast_depth
+        from kernels.raycast import crossing_blocks, raycast_depth
 
         band = self.post.band
         T_L_C = pose_in_local(T_W_C, self.post.origin)
+        if self._crossing is None:  # one band for every view: its crossing blocks once
+            self._crossing = crossing_blocks(band.block_keys, band.block_table, self.post.mean,
+                                             self.observed)
         return raycast_depth(band.block_keys, band.block_table, self.post.mean, self.observed,
                              self.post.voxel_size, self.K, T_L_C, self.width, self.height,
                              self.depth_range[0], self.depth_range[1],
-                             stride=stride or self.stride)
+                             stride=stride or self.stride, crossing=self._crossing)
 
     def information(self, depth, T_W_C, stride: int | None = None) -> np.ndarray:
         """(N,) float64 ``(A_v^T W_v A_v)_ii`` of the hypothetical frame ``depth`` (cast at
